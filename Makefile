@@ -1,0 +1,29 @@
+# Two commands: `make demo` (set up .venv, run the main job) and `make test` (set up, run every test).
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+export ROS_LOG_DIR ?= $(CURDIR)/.venv/ros_log
+
+.PHONY: all demo test bench lint clean
+
+all: test
+
+$(STAMP): requirements.txt setup.py setup.cfg package.xml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --disable-pip-version-check --upgrade pip
+	$(PY) -m pip install -q --disable-pip-version-check -r requirements.txt
+	$(PY) -m pip install -q --disable-pip-version-check --no-deps -e .
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m armcal_ros.cli demo
+
+test: $(STAMP)
+	$(PY) -m pytest -ra test
+
+bench: $(STAMP)
+	$(PY) bench/solver.py
+
+clean:
+	rm -rf $(VENV) build install log *.egg-info

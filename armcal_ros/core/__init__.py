@@ -1,0 +1,1 @@
+"""ROS-free maths: camera model, priors, adjustment, initialisation, triangulation."""

@@ -1,0 +1,1 @@
+"""ROS-free front end: marker detection, time pairing, sample store."""

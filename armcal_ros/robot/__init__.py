@@ -1,0 +1,1 @@
+"""ROS-free robot model: URDF chain, forward kinematics, kinematic error parameters."""

@@ -1,0 +1,1 @@
+"""Simulator of a calibration cell: a bag plus its ground truth."""
