@@ -120,7 +120,7 @@ class PointPrior:
         return self._blocks
 
     def scalar_precision(self):
-        """The N x N matrix K^-1 whose Kronecker product with I_3 is the precision (dense)."""
+        """Return the N x N matrix K^-1 whose Kronecker product with I_3 is the precision."""
         if self.kind != 'dense':
             raise ValueError(f'scalar_precision needs a dense prior, this one is {self.kind}')
         return self._kinv
