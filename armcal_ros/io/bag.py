@@ -1,0 +1,292 @@
+"""
+A thin layer over ``rosbags`` (0.11) for reading and writing rosbag2 bags without ROS.
+
+Writing: :class:`BagWriter` writes real rosbag2 bags (metadata version 9, CDR) in ``mcap`` (the
+default) or ``sqlite3`` storage, with message definitions from the Jazzy typestore
+(``Stores.ROS2_JAZZY``), so ``ros2 bag`` and rclpy read them.  It knows the three message types the
+calibrator consumes: ``sensor_msgs/msg/JointState``, ``sensor_msgs/msg/Image`` and
+``sensor_msgs/msg/CompressedImage``, each with a proper ``std_msgs/Header``.
+
+Compression: rosbags 0.11 supports zstd only.  For mcap it offers chunk compression
+(``CompressionMode.STORAGE``: each ~1 MiB chunk is zstd-compressed inside the .mcap file, which is
+what ``ros2 bag record --storage-preset-profile zstd_fast`` produces and what every mcap reader
+decodes); ``MESSAGE`` (per message) and ``FILE`` (whole file) modes exist too but are deprecated in
+rosbag2 itself.  ``compress=True`` selects chunk compression for mcap and is ignored for sqlite3.
+
+Reading: :func:`iter_raw` yields :class:`RawMessage` records whose ``deserialize()`` a caller may
+wrap in ``try/except DeserializationError`` to skip a corrupt message and keep going;
+:func:`iter_messages` does that for you when ``skip_errors=True``.  :func:`bag_topics` lists
+topics, types and counts.
+"""
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import Writer
+from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
+from rosbags.typesys import get_typestore, Stores
+
+JOINT_STATE = 'sensor_msgs/msg/JointState'
+IMAGE = 'sensor_msgs/msg/Image'
+COMPRESSED_IMAGE = 'sensor_msgs/msg/CompressedImage'
+
+IMAGE_ENCODINGS = ('mono8', 'rgb8', 'bgr8')
+COMPRESSED_FORMATS = ('png', 'jpeg')
+STORAGES = ('mcap', 'sqlite3')
+
+
+class DeserializationError(ValueError):
+    """A message in a bag could not be deserialised (corrupt or truncated data)."""
+
+
+def jazzy_typestore():
+    """Return the rosbags typestore with the ROS 2 Jazzy message definitions."""
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def split_stamp(t_ns):
+    """Split integer nanoseconds into (sec, nanosec) as builtin_interfaces/Time wants."""
+    t_ns = int(t_ns)
+    if t_ns < 0:
+        raise ValueError(f't_ns must be >= 0, got {t_ns}')
+    return t_ns // 1_000_000_000, t_ns % 1_000_000_000
+
+
+def stamp_to_ns(stamp):
+    """builtin_interfaces/Time (anything with sec and nanosec) -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def encode_compressed(image, fmt='png', encoding='mono8', jpeg_quality=90, png_level=3):
+    """
+    Encode an image array as image_transport's ``compressed`` plugin does.
+
+    Returns (format string, bytes).  The format string follows compressed_image_transport:
+    ``'<encoding>; <png|jpeg> compressed <target>'`` where the target is ``bgr8`` for colour
+    (OpenCV writes BGR files) and empty for mono.
+    """
+    if fmt not in COMPRESSED_FORMATS:
+        raise ValueError(f'fmt must be one of {COMPRESSED_FORMATS}, got {fmt!r}')
+    image = _check_image(image, encoding)
+    target = ''
+    if encoding == 'rgb8':
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+        target = 'bgr8'
+    elif encoding == 'bgr8':
+        target = 'bgr8'
+    if fmt == 'png':
+        ok, buf = cv2.imencode('.png', image, [cv2.IMWRITE_PNG_COMPRESSION, int(png_level)])
+    else:
+        ok, buf = cv2.imencode('.jpg', image, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+    if not ok:
+        raise ValueError(f'cv2 could not encode a {image.shape} image as {fmt}')
+    return f'{encoding}; {fmt} compressed {target}', buf.tobytes()
+
+
+def _check_image(image, encoding):
+    image = np.asarray(image)
+    if encoding not in IMAGE_ENCODINGS:
+        raise ValueError(f'encoding must be one of {IMAGE_ENCODINGS}, got {encoding!r}')
+    if image.dtype != np.uint8:
+        raise ValueError(f'image must be uint8, got {image.dtype}')
+    if encoding == 'mono8' and image.ndim != 2:
+        raise ValueError(f'a mono8 image must have shape (H, W), got {image.shape}')
+    if encoding != 'mono8' and (image.ndim != 3 or image.shape[2] != 3):
+        raise ValueError(f'a {encoding} image must have shape (H, W, 3), got {image.shape}')
+    return np.ascontiguousarray(image)
+
+
+class BagWriter:
+    """
+    Write a rosbag2 bag with rosbags; use as a context manager.
+
+    ``path`` is the bag directory (it must not exist).  ``storage`` is ``'mcap'`` or
+    ``'sqlite3'``; ``compress`` enables zstd chunk compression for mcap.  Each ``write_*`` takes
+    the header stamp ``stamp_ns`` and, optionally, the bag (receive) time ``log_ns``, which
+    defaults to the stamp.
+    """
+
+    def __init__(self, path, storage='mcap', compress=True, typestore=None):
+        if storage not in STORAGES:
+            raise ValueError(f'storage must be one of {STORAGES}, got {storage!r}')
+        self.path = Path(path)
+        self.storage = storage
+        self.typestore = typestore or jazzy_typestore()
+        plugin = StoragePlugin.MCAP if storage == 'mcap' else StoragePlugin.SQLITE3
+        self._writer = Writer(self.path, version=9, storage_plugin=plugin)
+        if compress and storage == 'mcap':
+            self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        self._connections = {}
+        self._types = self.typestore.types
+        self.counts = {}
+
+    def __enter__(self):
+        """Open the bag."""
+        self._writer.open()
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        """Close the bag (writing its index and metadata), or abort it on an exception."""
+        return self._writer.__exit__(exc_type, exc, tb)
+
+    def connection(self, topic, msgtype):
+        """Return (creating once) the connection for ``topic`` with ``msgtype``."""
+        conn = self._connections.get(topic)
+        if conn is None:
+            conn = self._writer.add_connection(topic, msgtype, typestore=self.typestore)
+            self._connections[topic] = conn
+            self.counts[topic] = 0
+        elif conn.msgtype != msgtype:
+            raise ValueError(f'topic {topic!r} already carries {conn.msgtype}, not {msgtype}')
+        return conn
+
+    def header(self, stamp_ns, frame_id=''):
+        """Build a std_msgs/Header."""
+        sec, nsec = split_stamp(stamp_ns)
+        t = self._types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nsec)
+        return self._types['std_msgs/msg/Header'](stamp=t, frame_id=frame_id)
+
+    def write_message(self, topic, msgtype, log_ns, msg):
+        """Serialise a rosbags message object and write it at bag time ``log_ns``."""
+        conn = self.connection(topic, msgtype)
+        self._writer.write(conn, int(log_ns), self.typestore.serialize_cdr(msg, msgtype))
+        self.counts[topic] += 1
+
+    def write_raw(self, topic, msgtype, log_ns, data):
+        """Write already serialised CDR bytes (e.g. to copy or to corrupt a message in a test)."""
+        conn = self.connection(topic, msgtype)
+        self._writer.write(conn, int(log_ns), bytes(data))
+        self.counts[topic] += 1
+
+    def write_joint_state(self, topic, stamp_ns, names, positions, velocities=None,
+                          efforts=None, log_ns=None, frame_id=''):
+        """Write a sensor_msgs/JointState (velocity and effort empty unless given)."""
+        names = [str(n) for n in names]
+        pos = np.asarray(positions, dtype=np.float64).reshape(-1)
+        if pos.size != len(names):
+            raise ValueError(f'positions has {pos.size} values for {len(names)} names')
+        vel = np.zeros(0) if velocities is None else np.asarray(velocities, np.float64)
+        eff = np.zeros(0) if efforts is None else np.asarray(efforts, np.float64)
+        for label, arr in (('velocities', vel), ('efforts', eff)):
+            if arr.size not in (0, len(names)):
+                raise ValueError(f'{label} must be empty or have {len(names)} values')
+        msg = self._types[JOINT_STATE](header=self.header(stamp_ns, frame_id), name=names,
+                                       position=pos, velocity=vel.reshape(-1),
+                                       effort=eff.reshape(-1))
+        self.write_message(topic, JOINT_STATE, stamp_ns if log_ns is None else log_ns, msg)
+
+    def write_image(self, topic, stamp_ns, image, encoding='mono8', frame_id='', log_ns=None):
+        """Write a sensor_msgs/Image from a uint8 array (H, W) mono8 or (H, W, 3) rgb8/bgr8."""
+        image = _check_image(image, encoding)
+        h, w = image.shape[:2]
+        channels = 1 if image.ndim == 2 else 3
+        msg = self._types[IMAGE](header=self.header(stamp_ns, frame_id), height=h, width=w,
+                                 encoding=encoding, is_bigendian=0, step=w * channels,
+                                 data=image.reshape(-1))
+        self.write_message(topic, IMAGE, stamp_ns if log_ns is None else log_ns, msg)
+
+    def write_compressed_image(self, topic, stamp_ns, image, fmt='png', encoding='mono8',
+                               frame_id='', log_ns=None, jpeg_quality=90):
+        """Encode ``image`` (png or jpeg) and write a sensor_msgs/CompressedImage."""
+        format_string, data = encode_compressed(image, fmt, encoding, jpeg_quality)
+        msg = self._types[COMPRESSED_IMAGE](header=self.header(stamp_ns, frame_id),
+                                            format=format_string,
+                                            data=np.frombuffer(data, np.uint8))
+        self.write_message(topic, COMPRESSED_IMAGE, stamp_ns if log_ns is None else log_ns, msg)
+
+
+@dataclass
+class RawMessage:
+    """One message as stored: call ``deserialize()`` to decode it (may raise)."""
+
+    topic: str
+    msgtype: str
+    t_ns: int
+    rawdata: bytes
+    _decode: Callable
+
+    def deserialize(self):
+        """Decode the CDR bytes; raises :class:`DeserializationError` on corrupt data."""
+        try:
+            return self._decode(self.rawdata, self.msgtype)
+        except Exception as err:  # rosbags raises several types on truncated CDR
+            raise DeserializationError(
+                f'{self.topic} at t={self.t_ns} ns: cannot deserialise {self.msgtype}: {err}'
+            ) from err
+
+
+def _open_reader(path):
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f'bag {path} does not exist')
+    return AnyReader([path], default_typestore=jazzy_typestore())
+
+
+def iter_raw(path, topics=None):
+    """Yield :class:`RawMessage` for every message (in bag-time order), optionally by topic."""
+    with _open_reader(path) as reader:
+        conns = reader.connections
+        if topics is not None:
+            wanted = set(topics)
+            conns = [c for c in conns if c.topic in wanted]
+            if not conns:
+                return
+        for conn, t_ns, raw in reader.messages(connections=conns):
+            yield RawMessage(conn.topic, conn.msgtype, t_ns, raw,
+                             reader.typestore.deserialize_cdr)
+
+
+def iter_messages(path, topics=None, skip_errors=False, on_error=None):
+    """
+    Yield (topic, msgtype, t_ns, msg) with ``msg`` a rosbags message dataclass.
+
+    With ``skip_errors`` a message that fails to deserialise is skipped (``on_error`` is then
+    called with the :class:`DeserializationError`, if given); otherwise the error propagates.
+    """
+    for raw in iter_raw(path, topics):
+        try:
+            msg = raw.deserialize()
+        except DeserializationError as err:
+            if not skip_errors:
+                raise
+            if on_error is not None:
+                on_error(err)
+            continue
+        yield raw.topic, raw.msgtype, raw.t_ns, msg
+
+
+def bag_topics(path):
+    """Return {topic: (msgtype, message count)} of a bag."""
+    with _open_reader(path) as reader:
+        return {name: (info.msgtype, int(info.msgcount)) for name, info in reader.topics.items()}
+
+
+def image_to_array(msgtype, msg):
+    """
+    Decode an Image or CompressedImage message to (uint8 array, encoding).
+
+    Mono images come back (H, W) ``mono8``; colour images (H, W, 3) in ``bgr8`` or ``rgb8`` as
+    their message says (compressed colour images decode to ``bgr8``).
+    """
+    if msgtype == IMAGE:
+        enc = msg.encoding
+        if enc not in IMAGE_ENCODINGS:
+            raise ValueError(f'unsupported image encoding {enc!r}')
+        ch = 1 if enc == 'mono8' else 3
+        data = np.asarray(msg.data, np.uint8)
+        rows = data[:msg.height * msg.step].reshape(msg.height, msg.step)
+        img = rows[:, :msg.width * ch]
+        return (img if ch == 1 else img.reshape(msg.height, msg.width, 3)), enc
+    if msgtype == COMPRESSED_IMAGE:
+        buf = np.asarray(msg.data, np.uint8)
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ValueError(f'cannot decode compressed image with format {msg.format!r}')
+        if img.ndim == 3 and img.shape[2] == 4:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+        return img, ('mono8' if img.ndim == 2 else 'bgr8')
+    raise ValueError(f'msgtype must be {IMAGE} or {COMPRESSED_IMAGE}, got {msgtype!r}')
