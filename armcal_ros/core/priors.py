@@ -16,7 +16,8 @@ independent copy of the same scalar process.  The small independent term s_n kee
 positive definite (0.02 mm was enough in double precision).
 
 A prior enters the objective as the quadratic (X - X^)^T P (X - X^) with precision P = Cov^-1;
-the solver needs only P, either as N 3x3 blocks (``block_precision``) or dense (``dense_precision``).
+the solver needs only P, either as N 3x3 blocks (``block_precision``) or dense
+(``scalar_precision``, the N x N factor of the Kronecker product).
 """
 
 from dataclasses import dataclass

@@ -1,0 +1,539 @@
+"""
+Levenberg-Marquardt bundle adjustment of cameras and robot-measured points.
+
+Unknowns: every camera's intrinsics [fx, fy, cx, cy], its free distortion terms and its pose
+increment (w, dt) (see :mod:`armcal_ros.core.camera`), and - unless the prior is ``fixed`` - the
+true points X.  Objective (twice the negative log posterior, up to a constant)::
+
+    F = sum_ij rho(|x_ij - pi(c_j, X_i)|^2) / s_px^2  +  (X - X^)^T P (X - X^)
+
+with rho the robust loss of :mod:`armcal_ros.core.robust` and P the prior precision of
+:mod:`armcal_ros.core.priors`.  Gauss-Newton normal equations, in the usual bundle-adjustment
+blocks (c: cameras, x: points)::
+
+    [U   W] [dc]     [g_c]
+    [W^T V] [dx] = - [g_x]
+
+U is block diagonal over cameras (an observation involves one camera and one point).  V holds the
+image terms as 3x3 blocks plus P: block diagonal for ``independent`` (then V^-1 costs O(N)), dense
+for the exact ``correlated`` prior (O(N^3) Cholesky - the reference form).  Either way the points
+are eliminated by the Schur complement S = U - W V^-1 W^T, S dc = -g_c + W V^-1 g_x,
+dx = V^-1 (-g_x - W^T dc).
+
+Levenberg-Marquardt with Marquardt's scaling (Marquardt, 1963; as in Thompson et al., 2004, who
+multiply the diagonal of the curvature matrix by (1 + beta)): the damped system replaces every
+diagonal entry h_kk by h_kk (1 + lambda), which makes the step invariant to the units of the
+parameters - they span about six orders of magnitude here (pixels of focal length against
+radians of rotation).  lambda follows Nielsen's (1999) gain-ratio rule.
+
+Convergence: the relative decrease of F below ``ftol``, or the scaled step below ``xtol``, or the
+scaled gradient below ``gtol``; failure when ``max_iterations`` is reached.  After convergence,
+observations whose pixel residual exceeds ``gate_sigmas`` robust standard deviations (and
+``gate_min_px``) are gated out and the problem is re-solved from the current estimate until the
+inlier set stops changing.
+
+Parameter uncertainty: the covariance of the camera parameters is S^-1 at the solution (the
+Laplace approximation; F is already whitened by s_px and P, so no residual-variance rescaling).
+
+Why by hand rather than scipy.optimize.least_squares: the Schur complement over 3x3 point blocks,
+the dense correlated prior inside V, and the camera covariance from the same factorisation are the
+structure of this problem; a generic solver sees a sparse Jacobian and solves it with LSMR or a
+dense QR, many times slower (bench/solver.py measures it).
+"""
+
+import time
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve, LinAlgError
+
+from armcal_ros.core.camera import (Camera, DISTORTION_NAMES, INTRINSIC_NAMES,
+                                    project_with_jacobians)
+from armcal_ros.core.priors import PointPrior, PriorSettings
+from armcal_ros.core.robust import check_loss, rho, weights
+
+# Nielsen (1999) shrinks lambda by at most 3 per good step; with steps that match the model well
+# a faster shrink saves the long linear tail after an early blow-up (measured: 50 -> 20
+# iterations from a DLT start).
+LAMBDA_MIN_FACTOR = 1.0 / 3.0
+
+
+@dataclass
+class Observations:
+    """
+    Image observations: observation m is point ``point[m]`` seen by ``camera[m]`` at ``uv[m]``.
+
+    Shapes: camera (M,) int, point (M,) int, uv (M, 2) pixels.
+    """
+
+    camera: np.ndarray
+    point: np.ndarray
+    uv: np.ndarray
+
+    def __post_init__(self):
+        self.camera = np.asarray(self.camera, dtype=np.int64).reshape(-1)
+        self.point = np.asarray(self.point, dtype=np.int64).reshape(-1)
+        self.uv = np.asarray(self.uv, dtype=float)
+        m = self.camera.shape[0]
+        if self.point.shape != (m,):
+            raise ValueError(f'observations.point must have shape ({m},), got {self.point.shape}')
+        if self.uv.shape != (m, 2):
+            raise ValueError(f'observations.uv must have shape ({m}, 2), got {self.uv.shape}')
+        if not np.all(np.isfinite(self.uv)):
+            raise ValueError('observations.uv contains NaN or inf')
+
+    def __len__(self):
+        return self.camera.shape[0]
+
+    def subset(self, mask):
+        """Return the observations selected by a boolean mask or index array."""
+        return Observations(self.camera[mask], self.point[mask], self.uv[mask])
+
+
+@dataclass
+class SolverSettings:
+    """
+    Settings of the adjustment (defaults and their reasons are in the README).
+
+    pixel_sigma: image noise s_px (px).  free_distortion: which plumb_bob terms are estimated.
+    loss / loss_scale: robust loss and its scale (px).  gate_sigmas / gate_min_px: outlier gate.
+    """
+
+    pixel_sigma: float = 0.5
+    free_distortion: Sequence[str] = ('k1', 'k2', 'p1', 'p2')
+    loss: str = 'huber'
+    loss_scale: float = 2.0
+    gate_sigmas: float = 5.0
+    gate_min_px: float = 1.0
+    max_gate_rounds: int = 3
+    max_iterations: int = 100
+    ftol: float = 1e-8
+    xtol: float = 1e-8
+    gtol: float = 1e-10
+    initial_lambda: float = 1e-3
+
+    def validate(self):
+        """Raise ValueError naming the first bad setting; return self."""
+        if not self.pixel_sigma > 0:
+            raise ValueError(f'pixel_sigma must be > 0, got {self.pixel_sigma}')
+        bad = [d for d in self.free_distortion if d not in DISTORTION_NAMES]
+        if bad:
+            raise ValueError(f'free_distortion has unknown terms {bad}; '
+                             f'allowed: {DISTORTION_NAMES}')
+        check_loss(self.loss, self.loss_scale)
+        if not self.gate_sigmas > 0:
+            raise ValueError(f'gate_sigmas must be > 0, got {self.gate_sigmas}')
+        if self.max_iterations < 1:
+            raise ValueError(f'max_iterations must be >= 1, got {self.max_iterations}')
+        return self
+
+
+@dataclass
+class CameraEstimate:
+    """One camera's estimate, its standard deviations and fit statistics."""
+
+    camera: Camera
+    std: Dict[str, float] = field(default_factory=dict)
+    n_observations: int = 0
+    n_inliers: int = 0
+    rms_px: float = float('nan')
+    status: str = 'ok'
+    message: str = ''
+
+
+@dataclass
+class AdjustmentResult:
+    """
+    Outcome of an adjustment.
+
+    ``status``: 'converged', 'max_iterations', 'failed'.  ``cost`` is F at the solution;
+    ``points`` the adjusted points (N, 3) (the measured points for ``fixed``); ``inliers`` a
+    boolean mask over the observations; ``covariance`` the camera-parameter covariance with
+    ``parameter_names`` labelling its rows.
+    """
+
+    success: bool
+    status: str
+    message: str
+    cost: float
+    initial_cost: float
+    iterations: int
+    time_s: float
+    cameras: Dict[str, CameraEstimate]
+    points: np.ndarray
+    inliers: np.ndarray
+    model: str = ''
+    covariance: Optional[np.ndarray] = None
+    parameter_names: List[str] = field(default_factory=list)
+    gate_px: float = float('nan')
+
+    def camera_list(self):
+        """Return the estimated cameras in input order."""
+        return [e.camera for e in self.cameras.values()]
+
+
+class _Layout:
+    """Where each camera's parameters sit in the reduced parameter vector."""
+
+    def __init__(self, n_cameras, free_distortion):
+        self.dist_idx = np.array([DISTORTION_NAMES.index(d) for d in free_distortion], dtype=int)
+        self.per_camera = 4 + len(self.dist_idx) + 6
+        self.n_cameras = n_cameras
+        self.size = n_cameras * self.per_camera
+
+    def names(self, camera_names):
+        local = list(INTRINSIC_NAMES) + [DISTORTION_NAMES[i] for i in self.dist_idx] + \
+            ['wx', 'wy', 'wz', 'tx', 'ty', 'tz']
+        return [f'{c}/{p}' for c in camera_names for p in local]
+
+    def camera_jacobian(self, J):
+        """Stack d_intr, free d_dist and d_pose into (M, 2, per_camera)."""
+        return np.concatenate([J.d_intr, J.d_dist[:, :, self.dist_idx], J.d_pose], axis=2)
+
+
+def _apply_camera_step(cam: Camera, step, layout: _Layout):
+    new = cam.copy()
+    new.set_intrinsics(cam.intrinsics() + step[:4])
+    nd = len(layout.dist_idx)
+    dist = cam.dist.copy()
+    dist[layout.dist_idx] += step[4:4 + nd]
+    new.dist = dist
+    new.apply_pose_increment(step[4 + nd:7 + nd], step[7 + nd:10 + nd])
+    return new
+
+
+class _Problem:
+    """Linearisation and cost of one adjustment, with fixed camera set and observations."""
+
+    def __init__(self, cameras, measured, obs, prior, settings, active):
+        self.cameras = cameras
+        self.measured = measured
+        self.obs = obs
+        self.prior = prior
+        self.s = settings
+        self.layout = _Layout(len(cameras), settings.free_distortion)
+        self.active = active              # boolean mask of observations in use
+        self.n = measured.shape[0]
+        self.optimise_points = prior.kind != 'fixed'
+        self.by_camera = [np.flatnonzero((obs.camera == j) & active)
+                          for j in range(len(cameras))]
+        if prior.kind == 'dense':
+            self.P_dense = np.kron(prior.scalar_precision(), np.eye(3))
+
+    def residuals(self, cams, X):
+        """Squared pixel residual norms per active observation, by camera."""
+        out = []
+        for j, idx in enumerate(self.by_camera):
+            c = cams[j]
+            uv = c.project(X[self.obs.point[idx]])
+            out.append(np.sum((uv - self.obs.uv[idx]) ** 2, axis=1))
+        return out
+
+    def cost(self, cams, X):
+        s2 = self.s.pixel_sigma ** 2
+        total = sum(float(np.sum(rho(s, self.s.loss, self.s.loss_scale))) for s in
+                    self.residuals(cams, X)) / s2
+        if self.optimise_points:
+            total += self.prior.cost(X)
+        return total
+
+    def normal_equations(self, cams, X):
+        """Assemble U (block), W (dense), V (blocks or dense), g_c, g_x."""
+        lay = self.layout
+        pc = lay.per_camera
+        n = self.n
+        U = np.zeros((lay.size, lay.size))
+        g_c = np.zeros(lay.size)
+        W = np.zeros((lay.size, n, 3)) if self.optimise_points else None
+        Vb = np.zeros((n, 3, 3))
+        g_x = np.zeros((n, 3))
+        inv_s2 = 1.0 / self.s.pixel_sigma ** 2
+        for j, idx in enumerate(self.by_camera):
+            if idx.size == 0:
+                continue
+            c = cams[j]
+            pts = self.obs.point[idx]
+            J = project_with_jacobians(c.intrinsics(), c.dist, c.rotation, c.translation,
+                                       X[pts])
+            r = J.uv - self.obs.uv[idx]
+            w = weights(np.sum(r * r, axis=1), self.s.loss, self.s.loss_scale) * inv_s2
+            Jc = lay.camera_jacobian(J)                          # (m, 2, pc)
+            wJc = Jc * w[:, None, None]
+            sl = slice(j * pc, (j + 1) * pc)
+            U[sl, sl] = np.einsum('mki,mkj->ij', wJc, Jc)
+            g_c[sl] = np.einsum('mki,mk->i', wJc, r)
+            if self.optimise_points:
+                Jx = J.d_point
+                wJx = Jx * w[:, None, None]
+                blocks = np.einsum('mki,mkj->mij', wJc, Jx)      # (m, pc, 3)
+                if np.unique(pts).size == pts.size:
+                    W[sl, pts, :] = blocks.transpose(1, 0, 2)
+                else:
+                    np.add.at(W, (sl, pts), blocks.transpose(1, 0, 2))
+                np.add.at(Vb, pts, np.einsum('mki,mkj->mij', wJx, Jx))
+                np.add.at(g_x, pts, np.einsum('mki,mk->mi', wJx, r))
+        if self.optimise_points:
+            g_x += self.prior.gradient_half(X)
+        return U, g_c, W, Vb, g_x
+
+    def scaled_gradient(self, U, g_c, Vb, g_x):
+        """Return max_k |g_k| / sqrt(h_kk): the gradient in Marquardt-scaled units."""
+        g = np.abs(g_c) / np.sqrt(np.maximum(np.diag(U), 1e-300))
+        out = float(np.max(g)) if g.size else 0.0
+        if self.optimise_points and g_x.size:
+            if self.prior.kind == 'block':
+                h = np.diagonal(Vb, axis1=1, axis2=2) + 1.0 / self.prior.settings.point_sigma ** 2
+            else:
+                h = np.diagonal(Vb, axis1=1, axis2=2) + \
+                    np.diag(self.prior.scalar_precision())[:, None]
+            out = max(out, float(np.max(np.abs(g_x) / np.sqrt(h))))
+        return out
+
+    def solve_step(self, U, g_c, W, Vb, g_x, lam):
+        """Solve the Marquardt-damped system for the camera step dc and the point step dx."""
+        dU = np.diag(U).copy()
+        dU[dU <= 0] = 1e-12
+        Ud = U + np.diag(lam * dU)
+        if not self.optimise_points:
+            dc = _spd_solve(Ud, -g_c)
+            return dc, None
+        n = self.n
+        Wm = W.reshape(self.layout.size, 3 * n)
+        if self.prior.kind == 'block':
+            V = Vb + self.prior.block_precision()
+            dV = np.diagonal(V, axis1=1, axis2=2).copy()
+            Vd = V.copy()
+            Vd[:, [0, 1, 2], [0, 1, 2]] += lam * np.maximum(dV, 1e-12)
+            Vinv = np.linalg.inv(Vd)
+            WVi = np.einsum('pnk,nkl->pnl', W, Vinv).reshape(self.layout.size, 3 * n)
+            S = Ud - WVi @ Wm.T
+            rhs = -g_c + WVi @ g_x.reshape(-1)
+            dc = _spd_solve(S, rhs)
+            dx = np.einsum('nkl,nl->nk', Vinv, -g_x - (Wm.T @ dc).reshape(n, 3))
+            return dc, dx
+        V = self.P_dense.copy()
+        ii = np.arange(n)
+        for a in range(3):
+            for b in range(3):
+                V[3 * ii + a, 3 * ii + b] += Vb[:, a, b]
+        dV = np.diag(V).copy()
+        V[np.diag_indices_from(V)] += lam * np.maximum(dV, 1e-12)
+        F = cho_factor(V, lower=True, check_finite=False)
+        ViWt = cho_solve(F, Wm.T, check_finite=False)
+        Vig = cho_solve(F, g_x.reshape(-1), check_finite=False)
+        S = Ud - Wm @ ViWt
+        dc = _spd_solve(S, -g_c + Wm @ Vig)
+        dx = (-Vig - ViWt @ dc).reshape(n, 3)
+        return dc, dx
+
+    def reduced_matrix(self, cams, X):
+        """Undamped Schur complement S at (cams, X): the inverse camera covariance."""
+        U, g_c, W, Vb, g_x = self.normal_equations(cams, X)
+        if not self.optimise_points:
+            return U
+        n = self.n
+        Wm = W.reshape(self.layout.size, 3 * n)
+        if self.prior.kind == 'block':
+            Vinv = np.linalg.inv(Vb + self.prior.block_precision())
+            WVi = np.einsum('pnk,nkl->pnl', W, Vinv).reshape(self.layout.size, 3 * n)
+            return U - WVi @ Wm.T
+        V = self.P_dense.copy()
+        ii = np.arange(n)
+        for a in range(3):
+            for b in range(3):
+                V[3 * ii + a, 3 * ii + b] += Vb[:, a, b]
+        F = cho_factor(V, lower=True, check_finite=False)
+        return U - Wm @ cho_solve(F, Wm.T, check_finite=False)
+
+    def step(self, cams, X, dc, dx):
+        pc = self.layout.per_camera
+        new_cams = [_apply_camera_step(c, dc[j * pc:(j + 1) * pc], self.layout)
+                    for j, c in enumerate(cams)]
+        new_X = X + dx if dx is not None else X
+        return new_cams, new_X
+
+
+def _spd_solve(A, b):
+    try:
+        return cho_solve(cho_factor(A, check_finite=False), b, check_finite=False)
+    except LinAlgError:
+        return np.linalg.lstsq(A, b, rcond=None)[0]
+
+
+def _scaled_norm(cams, X, dc, dx, layout):
+    """Step size relative to the parameters, for the xtol test."""
+    pc = layout.per_camera
+    rel = 0.0
+    for j, c in enumerate(cams):
+        s = dc[j * pc:(j + 1) * pc]
+        scale_f = max(abs(c.fx), 1.0)
+        rel = max(rel, float(np.max(np.abs(s[:4]))) / scale_f)
+        rel = max(rel, float(np.max(np.abs(s[4 + len(layout.dist_idx):7 + len(layout.dist_idx)]))))
+        rel = max(rel, float(np.max(np.abs(s[-3:]))) / max(np.linalg.norm(c.translation), 1e-3))
+    if dx is not None and dx.size:
+        rel = max(rel, float(np.max(np.abs(dx))) / max(float(np.max(np.abs(X))), 1e-3))
+    return rel
+
+
+def _levenberg_marquardt(problem: _Problem, cams, X):
+    s = problem.s
+    lam = s.initial_lambda
+    nu = 2.0
+    cost = problem.cost(cams, X)
+    initial = cost
+    status, message = 'max_iterations', f'reached max_iterations={s.max_iterations}'
+    it = 0
+    for it in range(1, s.max_iterations + 1):
+        U, g_c, W, Vb, g_x = problem.normal_equations(cams, X)
+        if problem.scaled_gradient(U, g_c, Vb, g_x) < s.gtol * np.sqrt(max(cost, 1e-300)):
+            status, message = 'converged', 'scaled gradient below gtol'
+            it -= 1
+            break
+        accepted = False
+        for _ in range(30):
+            dc, dx = problem.solve_step(U, g_c, W, Vb, g_x, lam)
+            new_cams, new_X = problem.step(cams, X, dc, dx)
+            new_cost = problem.cost(new_cams, new_X)
+            # Predicted decrease of the Gauss-Newton model, for the gain ratio.
+            pred = -(dc @ g_c)
+            if dx is not None:
+                pred -= float(np.sum(dx * g_x))
+            actual = cost - new_cost
+            if np.isfinite(new_cost) and actual > 0:
+                gain = actual / max(pred, 1e-300)
+                lam *= max(LAMBDA_MIN_FACTOR, 1.0 - (2.0 * gain - 1.0) ** 3)
+                nu = 2.0
+                accepted = True
+                break
+            lam *= nu
+            nu *= 2.0
+        if not accepted:
+            status, message = 'converged', 'no step decreases the cost (at a minimum)'
+            break
+        rel_step = _scaled_norm(cams, X, dc, dx, problem.layout)
+        rel_decrease = (cost - new_cost) / max(cost, 1e-300)
+        cams, X, cost = new_cams, new_X, new_cost
+        if rel_decrease < s.ftol:
+            status, message = 'converged', f'relative cost decrease {rel_decrease:.2e} < ftol'
+            break
+        if rel_step < s.xtol:
+            status, message = 'converged', f'relative step {rel_step:.2e} < xtol'
+            break
+    return cams, X, cost, initial, it, status, message
+
+
+def _robust_sigma(d):
+    """Per-axis pixel sigma from residual norms: the Rayleigh median is 1.1774 sigma."""
+    return float(np.median(d)) / 1.1774 if d.size else float('nan')
+
+
+def adjust(cameras: Sequence[Camera], measured, obs: Observations,
+           prior_settings: PriorSettings = None, settings: SolverSettings = None,
+           points_init=None, inliers=None) -> AdjustmentResult:
+    """
+    Adjust ``cameras`` (initial estimates) and the points under the chosen prior.
+
+    ``measured`` are the robot's points X^ (N, 3); ``obs`` index into ``cameras`` and the points.
+    ``points_init`` (N, 3) warm-starts the points (default X^); ``inliers`` an initial mask.
+    Returns an :class:`AdjustmentResult`; never raises on numerical failure (status 'failed').
+    """
+    t0 = time.perf_counter()
+    prior_settings = (prior_settings or PriorSettings()).validate()
+    settings = (settings or SolverSettings()).validate()
+    measured = np.asarray(measured, float)
+    if measured.ndim != 2 or measured.shape[1] != 3:
+        raise ValueError(f'measured must have shape (N, 3), got {measured.shape}')
+    if not np.all(np.isfinite(measured)):
+        raise ValueError('measured contains NaN or inf')
+    n = measured.shape[0]
+    if len(obs) and (obs.point.max() >= n or obs.point.min() < 0):
+        raise ValueError(f'observations.point must index {n} points')
+    if len(obs) and (obs.camera.max() >= len(cameras) or obs.camera.min() < 0):
+        raise ValueError(f'observations.camera must index {len(cameras)} cameras')
+    cams = [c.copy() for c in cameras]
+    X = measured.copy() if points_init is None else np.array(points_init, float)
+    if X.shape != measured.shape:
+        raise ValueError(f'points_init must have shape {measured.shape}, got {X.shape}')
+    prior = PointPrior(measured, prior_settings)
+    active = np.ones(len(obs), bool) if inliers is None else np.asarray(inliers, bool).copy()
+
+    total_it = 0
+    initial_cost = None
+    gate = float('nan')
+    status, message, cost = 'failed', 'not run', float('nan')
+    try:
+        rounds = max(1, settings.max_gate_rounds + 1)
+        for k in range(rounds):
+            problem = _Problem(cams, measured, obs, prior, settings, active)
+            cams, X, cost, c0, it, status, message = _levenberg_marquardt(problem, cams, X)
+            initial_cost = c0 if initial_cost is None else initial_cost
+            total_it += it
+            d = _all_residual_norms(cams, X, obs)
+            gate = max(settings.gate_sigmas * _robust_sigma(d[active]), settings.gate_min_px)
+            new_active = d <= gate
+            if np.array_equal(new_active, active) or k == rounds - 1:
+                break
+            active = new_active
+        problem = _Problem(cams, measured, obs, prior, settings, active)
+        S = problem.reduced_matrix(cams, X)
+        cov = _safe_inverse(S)
+    except (LinAlgError, FloatingPointError, ValueError) as exc:
+        return AdjustmentResult(False, 'failed', f'numerical failure: {exc}', float('nan'),
+                                float('nan') if initial_cost is None else initial_cost,
+                                total_it, time.perf_counter() - t0,
+                                {c.name: CameraEstimate(c, status='failed', message=str(exc))
+                                 for c in cams}, X, active, prior_settings.model)
+    names = problem.layout.names([c.name for c in cams])
+    estimates = _camera_estimates(cams, obs, X, active, cov, problem.layout)
+    ok = status == 'converged' and np.all(np.isfinite(cov.diagonal()))
+    return AdjustmentResult(
+        success=bool(ok), status=status, message=message, cost=float(cost),
+        initial_cost=float(initial_cost), iterations=total_it,
+        time_s=time.perf_counter() - t0, cameras=estimates, points=X, inliers=active,
+        model=prior_settings.model, covariance=cov, parameter_names=names, gate_px=gate)
+
+
+def _all_residual_norms(cams, X, obs):
+    d = np.empty(len(obs))
+    for j, c in enumerate(cams):
+        idx = np.flatnonzero(obs.camera == j)
+        if idx.size:
+            d[idx] = np.linalg.norm(c.project(X[obs.point[idx]]) - obs.uv[idx], axis=1)
+    return d
+
+
+def _safe_inverse(S):
+    try:
+        return cho_solve(cho_factor(S, check_finite=False), np.eye(S.shape[0]),
+                         check_finite=False)
+    except LinAlgError:
+        return np.linalg.pinv(S)
+
+
+def _camera_estimates(cams, obs, X, active, cov, layout):
+    d = _all_residual_norms(cams, X, obs)
+    pc = layout.per_camera
+    nd = len(layout.dist_idx)
+    out = {}
+    for j, c in enumerate(cams):
+        sel = obs.camera == j
+        inl = sel & active
+        C = cov[j * pc:(j + 1) * pc, j * pc:(j + 1) * pc]
+        sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+        std = dict(zip(INTRINSIC_NAMES, sd[:4]))
+        for k, i in enumerate(layout.dist_idx):
+            std[DISTORTION_NAMES[i]] = float(sd[4 + k])
+        # Camera centre C = -R^T t with R <- exp(w) R, t <- t + dt:
+        # dC/dw = -R^T [t]x, dC/dt = -R^T (first order at w = 0).
+        from armcal_ros.core.camera import skew
+        Jc = np.hstack([-c.rotation.T @ skew(c.translation), -c.rotation.T])
+        Cp = C[4 + nd:, 4 + nd:]
+        cc = Jc @ Cp @ Jc.T
+        for a, ax in enumerate('xyz'):
+            std[f'center_{ax}'] = float(np.sqrt(max(cc[a, a], 0.0)))
+            std[f'rot_{ax}'] = float(sd[4 + nd + a])
+        rms = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float('nan')
+        out[c.name] = CameraEstimate(c, {k: float(v) for k, v in std.items()},
+                                     int(sel.sum()), int(inl.sum()), rms)
+    return out

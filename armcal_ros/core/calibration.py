@@ -1,0 +1,118 @@
+"""
+The whole estimator: initialise every camera, adjust with ``fixed``, then with the chosen model.
+
+This is the sequence of DESIGN.md section 3: DLT + RANSAC per camera (no hand-given guess), a
+``fixed``-model adjustment (points held at the robot's measurements) to bring in distortion, then
+the chosen noise model warm-started from it.  Cameras that cannot be initialised (too few or
+degenerate points) are reported and left out; the others are still calibrated.
+"""
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from armcal_ros.core.adjustment import (AdjustmentResult, Observations, SolverSettings,
+                                        adjust)
+from armcal_ros.core.camera import Camera
+from armcal_ros.core.initialisation import initialise_camera, InitResult
+from armcal_ros.core.priors import PriorSettings
+
+
+@dataclass
+class CameraSpec:
+    """A camera to calibrate: its name and image size in pixels."""
+
+    name: str
+    width: int
+    height: int
+
+
+@dataclass
+class CalibrationResult:
+    """
+    Result of :func:`calibrate`.
+
+    ``adjustment`` is the final adjustment over the cameras that could be initialised (None if
+    none could); ``init`` says per camera how initialisation went; ``stages`` lists
+    (model, cost, iterations, seconds) of each adjustment run.
+    """
+
+    success: bool
+    status: str
+    message: str
+    adjustment: Optional[AdjustmentResult]
+    init: Dict[str, InitResult] = field(default_factory=dict)
+    stages: List[Tuple[str, float, int, float]] = field(default_factory=list)
+    time_s: float = 0.0
+    camera_index: Dict[str, int] = field(default_factory=dict)
+
+    @property
+    def cameras(self):
+        """Estimated cameras by name (only those that were solved)."""
+        if self.adjustment is None:
+            return {}
+        return {k: v.camera for k, v in self.adjustment.cameras.items()}
+
+
+def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
+              prior: PriorSettings = None, settings: SolverSettings = None,
+              initial: Optional[Dict[str, Camera]] = None, rng=None) -> CalibrationResult:
+    """
+    Calibrate the cameras ``specs`` from robot points ``measured`` (N, 3) and observations.
+
+    ``initial`` maps camera names to warm-start estimates (a previous calibration); cameras
+    without one are initialised by DLT.  With a warm start the ``fixed`` stage is skipped.
+    """
+    t0 = time.perf_counter()
+    prior = (prior or PriorSettings()).validate()
+    settings = (settings or SolverSettings()).validate()
+    measured = np.asarray(measured, float)
+    rng = rng if rng is not None else np.random.default_rng(0)
+    initial = initial or {}
+    init: Dict[str, InitResult] = {}
+    cams: List[Camera] = []
+    keep: List[int] = []
+    for j, spec in enumerate(specs):
+        sel = obs.camera == j
+        if spec.name in initial:
+            cam = initial[spec.name].copy()
+            init[spec.name] = InitResult(True, 'warm_start', f'camera {spec.name}: warm start',
+                                         cam)
+        else:
+            res = initialise_camera(spec.name, spec.width, spec.height,
+                                    measured[obs.point[sel]], obs.uv[sel], rng=rng)
+            init[spec.name] = res
+            if not res.success:
+                continue
+            cam = res.camera
+        cams.append(cam)
+        keep.append(j)
+    if not cams:
+        msgs = '; '.join(r.message for r in init.values())
+        return CalibrationResult(False, 'no_camera', f'no camera could be initialised: {msgs}',
+                                 None, init, [], time.perf_counter() - t0)
+    remap = -np.ones(len(specs), dtype=np.int64)
+    remap[keep] = np.arange(len(keep))
+    sel = remap[obs.camera] >= 0
+    sub = Observations(remap[obs.camera[sel]], obs.point[sel], obs.uv[sel])
+    stages = []
+    points = None
+    inliers = None
+    cold = [specs[j].name for j in keep if specs[j].name not in initial]
+    if cold or prior.model == 'fixed':
+        fixed = adjust(cams, measured, sub, replace(prior, model='fixed'), settings)
+        stages.append(('fixed', fixed.cost, fixed.iterations, fixed.time_s))
+        cams = fixed.camera_list()
+        inliers = fixed.inliers
+        final = fixed
+    if prior.model != 'fixed':
+        final = adjust(cams, measured, sub, prior, settings, points_init=points, inliers=inliers)
+        stages.append((prior.model, final.cost, final.iterations, final.time_s))
+    failed = [r.message for r in init.values() if not r.success]
+    msg = final.message if not failed else final.message + '; skipped: ' + '; '.join(failed)
+    status = final.status if not failed else 'partial'
+    return CalibrationResult(final.success, status, msg, final, init, stages,
+                             time.perf_counter() - t0,
+                             {specs[j].name: k for k, j in enumerate(keep)})
