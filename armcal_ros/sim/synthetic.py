@@ -36,12 +36,12 @@ class SyntheticProblem:
 
     @property
     def specs(self):
-        """Camera names and sizes, as the calibrator needs them."""
+        """Return the camera names and sizes, as the calibrator needs them."""
         return [CameraSpec(c.name, c.width, c.height) for c in self.cameras]
 
     @property
     def truth(self):
-        """True cameras by name."""
+        """Return the true cameras by name."""
         return {c.name: c for c in self.cameras}
 
 
