@@ -1,4 +1,4 @@
-"""Camera model: projection equals cv2.projectPoints; analytic Jacobians equal finite differences."""
+"""Camera model: projection equals cv2.projectPoints; Jacobians equal finite differences."""
 import cv2
 import numpy as np
 import pytest
