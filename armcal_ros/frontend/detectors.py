@@ -1,0 +1,443 @@
+"""
+Marker detectors: an image in, zero or more 2D points with ids and a quality out.
+
+All image coordinates use the OpenCV / ``cv2.projectPoints`` convention: the centre of the
+top-left pixel is (0, 0), u to the right, v down.
+
+A detector instance may keep state between frames (the sphere detector tracks its last
+position), so the caller keeps one instance per camera.
+"""
+
+from dataclasses import dataclass
+import inspect
+import math
+
+import numpy as np
+
+import cv2
+
+
+@dataclass(frozen=True)
+class Detection:
+    """
+    One detected point.
+
+    ``uv`` (2,) pixel position, ``id`` marker id (0 for a sphere, the tag id for ArUco),
+    ``quality`` in [0, 1] (detector specific, higher is better; see each detector), and
+    ``radius_px`` the apparent size (sphere radius, half the tag diagonal).
+    """
+
+    uv: np.ndarray
+    id: int
+    quality: float
+    radius_px: float
+
+
+class Detector:
+    """Interface of every detector: ``detect(image) -> list[Detection]``."""
+
+    #: why the last call to :meth:`detect` returned what it did (for diagnostics and counters)
+    last_status = 'none'
+
+    def detect(self, image):
+        """Return the detections in ``image`` ((H, W) mono or (H, W, 3) BGR, 8 or 16 bit)."""
+        raise NotImplementedError
+
+    def reset(self):
+        """Forget any state carried between frames (e.g. after a time jump)."""
+
+
+def to_gray(image):
+    """Return a single-channel view/copy of ``image`` ((H, W), (H, W, 3) BGR or (H, W, 4) BGRA)."""
+    image = np.asarray(image)
+    if image.ndim == 2:
+        return image
+    if image.ndim == 3 and image.shape[2] == 1:
+        return image[:, :, 0]
+    if image.ndim == 3 and image.shape[2] in (3, 4):
+        code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        return cv2.cvtColor(np.ascontiguousarray(image), code)
+    raise ValueError(f'image must have shape (H, W), (H, W, 3) or (H, W, 4), got {image.shape}')
+
+
+def _white_level(dtype):
+    if dtype == np.uint8:
+        return 255.0
+    if dtype == np.uint16:
+        return 65535.0
+    if np.issubdtype(dtype, np.floating):
+        return 1.0
+    raise ValueError(f'image dtype must be uint8, uint16 or float, got {dtype}')
+
+
+def _check_positive(name, value, allow_zero=False):
+    try:
+        value = float(value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f'{name} must be a number, got {value!r}') from exc
+    if not math.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
+        raise ValueError(f'{name} must be {"non-negative" if allow_zero else "positive"}, '
+                         f'got {value}')
+    return value
+
+
+def _check_fraction(name, value):
+    value = _check_positive(name, value, allow_zero=True)
+    if value > 1:
+        raise ValueError(f'{name} must be in [0, 1], got {value}')
+    return value
+
+
+@dataclass
+class _Candidate:
+    uv: np.ndarray
+    radius: float
+    roundness: float
+    flux: float
+    touches_edge: bool
+
+    @property
+    def score(self):
+        return self.flux * self.roundness
+
+
+class SphereDetector(Detector):
+    """
+    A bright ball or LED: one round blob brighter than its surroundings.
+
+    Steps, on a grey image (colour is converted, 8 and 16 bit are both handled):
+
+    1. background level ``b`` = median and noise ``s`` = 1.4826 MAD(horizontal pixel
+       differences) / sqrt(2) on a subsample (the difference makes ``s`` insensitive to smooth
+       shading and vignetting);
+    2. Gaussian blur (``blur_sigma_px``) and threshold at
+       ``b + max(k_sigma * s_blurred, min_contrast * white_level)``, where ``s_blurred`` is
+       the noise left after the blur, then 8-connected components;
+    3. for each component, in the *unblurred* image, weights
+       ``w = max(I - b_local, 0)`` over the component grown by one pixel, ``b_local`` the median
+       of a ring around it; centroid = sum(w x) / sum(w), second moments -> covariance with
+       eigenvalues l1 >= l2;
+    4. keep a candidate when ``radius = 2 sqrt(sqrt(l1 l2))`` (the radius of a uniform disc with
+       those moments) lies in [``min_radius_px``, ``max_radius_px``], ``roundness =
+       sqrt(l2 / l1)`` >= ``min_roundness``, and it does not touch the image border (a cut
+       blob has a biased centroid).  Hot pixels and small specks fail the radius test (their
+       raw-image moments are near zero even though the blur spreads them), elongated glints
+       and half-occluded balls fail the roundness test;
+    5. rank by ``score = sum(w) * roundness``.
+
+    Ambiguity policy: if the runner-up scores at least ``ambiguity_ratio`` times the best, the
+    frame is ambiguous and **nothing** is returned (``last_status = 'ambiguous'``): a wrong
+    point with a good quality would poison the calibration, a missing one costs a frame.
+    Tracking resolves most such cases before they arise: when the previous frame gave a
+    detection, only a window of half-size ``search_window_px`` around it is searched first, so
+    a highlight elsewhere in the image is never considered; the whole image is searched when
+    the window yields nothing unambiguous or the blob touches the window edge.
+
+    ``quality = roundness * (1 - runner_up_score / best_score)`` (1 for a perfectly round,
+    unique blob).  Sub-pixel accuracy comes from the background-subtracted intensity-weighted
+    centroid: ~0.01-0.05 px on rendered spheres with a few DN of noise.
+    """
+
+    def __init__(self, min_radius_px=1.5, max_radius_px=40.0, blur_sigma_px=1.0, k_sigma=6.0,
+                 min_contrast=0.03, min_roundness=0.7, ambiguity_ratio=0.5,
+                 search_window_px=48.0, white_level=None, max_candidates=32):
+        self.min_radius_px = _check_positive('min_radius_px', min_radius_px)
+        self.max_radius_px = _check_positive('max_radius_px', max_radius_px)
+        if self.max_radius_px <= self.min_radius_px:
+            raise ValueError(f'max_radius_px ({max_radius_px}) must exceed min_radius_px '
+                             f'({min_radius_px})')
+        self.blur_sigma_px = _check_positive('blur_sigma_px', blur_sigma_px)
+        if self.blur_sigma_px < 0.5:
+            raise ValueError(f'blur_sigma_px must be >= 0.5, got {blur_sigma_px}')
+        self.k_sigma = _check_positive('k_sigma', k_sigma)
+        self.min_contrast = _check_fraction('min_contrast', min_contrast)
+        self.min_roundness = _check_fraction('min_roundness', min_roundness)
+        self.ambiguity_ratio = _check_fraction('ambiguity_ratio', ambiguity_ratio)
+        self.search_window_px = _check_positive('search_window_px', search_window_px,
+                                                allow_zero=True)
+        self.white_level = None if white_level is None else _check_positive('white_level',
+                                                                            white_level)
+        if int(max_candidates) != max_candidates or max_candidates < 2:
+            raise ValueError(f'max_candidates must be an integer >= 2, got {max_candidates!r}')
+        self.max_candidates = int(max_candidates)
+        # Standard deviation of white noise after a Gaussian blur of sigma b is s / (2 b sqrt(pi)).
+        self._blur_noise_gain = min(1.0, 1.0 / (2.0 * self.blur_sigma_px * math.sqrt(math.pi)))
+        self._margin = int(math.ceil(3 * self.blur_sigma_px)) + 1
+        self.last_uv = None
+        self.last_status = 'none'
+
+    def reset(self):
+        """Forget the tracked position."""
+        self.last_uv = None
+
+    def detect(self, image):
+        """Return [] or one :class:`Detection` (id 0) of the sphere in ``image``."""
+        gray = to_gray(image)
+        white = self.white_level or _white_level(gray.dtype)
+        h, w = gray.shape
+        if self.last_uv is not None and self.search_window_px > 0:
+            half = max(self.search_window_px, 2 * self.max_radius_px + 2 * self._margin)
+            u, v = self.last_uv
+            x0, y0 = max(0, int(u - half)), max(0, int(v - half))
+            x1, y1 = min(w, int(u + half) + 1), min(h, int(v + half) + 1)
+            if x1 - x0 > 4 and y1 - y0 > 4 and (x1 - x0) * (y1 - y0) < h * w:
+                det, status = self._detect_region(gray, x0, y0, x1, y1, white)
+                if det is not None:
+                    return self._accept(det, 'tracked')
+        det, status = self._detect_region(gray, 0, 0, w, h, white)
+        if det is None:
+            self.last_status = status
+            return []
+        return self._accept(det, 'ok')
+
+    def _accept(self, det, status):
+        self.last_uv = det.uv.copy()
+        self.last_status = status
+        return [det]
+
+    def _detect_region(self, gray, x0, y0, x1, y1, white):
+        sub = np.ascontiguousarray(gray[y0:y1, x0:x1])
+        bg, noise = self._background(sub)
+        threshold = bg + max(self.k_sigma * noise * self._blur_noise_gain,
+                             self.min_contrast * white)
+        if threshold >= white:
+            return None, 'none'
+        blurred = cv2.GaussianBlur(sub, (0, 0), self.blur_sigma_px)
+        if blurred.dtype == np.uint8:
+            threshold = math.floor(threshold)      # integer compare, same as '> threshold'
+        _, mask = cv2.threshold(blurred, threshold, 1, cv2.THRESH_BINARY)
+        mask = mask.astype(np.uint8, copy=False)
+        labels, stats = self._components(mask)
+        if stats.shape[0] <= 1:
+            return None, 'none'
+        max_extent = 2 * (self.max_radius_px + self._margin) + 2
+        areas = stats[1:, cv2.CC_STAT_AREA]
+        ok = ((stats[1:, cv2.CC_STAT_WIDTH] <= max_extent)
+              & (stats[1:, cv2.CC_STAT_HEIGHT] <= max_extent) & (areas >= 2))
+        order = 1 + np.flatnonzero(ok)
+        if order.size > self.max_candidates:
+            order = order[np.argsort(-areas[order - 1])[:self.max_candidates]]
+        image_edges = (x0 == 0, y0 == 0, x1 == gray.shape[1], y1 == gray.shape[0])
+        candidates = []
+        for label in order:
+            cand = self._measure(sub, labels, stats[label], label, bg, image_edges)
+            if cand is not None:
+                candidates.append(cand)
+        if not candidates:
+            return None, 'rejected' if order.size else 'none'
+        candidates.sort(key=lambda c: -c.score)
+        best = candidates[0]
+        second = candidates[1].score / best.score if len(candidates) > 1 else 0.0
+        if second >= self.ambiguity_ratio:
+            return None, 'ambiguous'
+        if best.touches_edge:
+            return None, 'window_edge'
+        uv = best.uv + (x0, y0)
+        det = Detection(uv=uv, id=0, quality=float(best.roundness * (1.0 - second)),
+                        radius_px=float(best.radius))
+        return det, 'ok'
+
+    _COARSE = 4
+    _COARSE_MIN_PIXELS = 160 * 120
+
+    def _components(self, mask):
+        """
+        Return (labels, stats) of the 8-connected components of ``mask``.
+
+        Labelling a whole 640x480 frame costs ~2 ms, but the mask is nearly empty: label a
+        4x-max-pooled copy, then only the boxes of its components at full resolution.  Cells
+        of different coarse components are at least one cell (4 px) apart, so a box grown by
+        one pixel holds no pixel of another component.
+        """
+        if mask.size < self._COARSE_MIN_PIXELS:
+            _, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+            return labels, stats
+        c = self._COARSE
+        h, w = mask.shape
+        # 4x4 dilation with the default centre anchor covers offsets -2..+1, so sampling every
+        # 4th pixel from 0 is a max-pool over cells [4k - 2, 4k + 2).
+        coarse = np.ascontiguousarray(cv2.dilate(mask, np.ones((c, c), np.uint8))[::c, ::c])
+        n, _, cstats, _ = cv2.connectedComponentsWithStats(coarse, connectivity=8)
+        labels = np.zeros(mask.shape, np.int32)
+        all_stats = [np.zeros((1, 5), np.int32)]
+        next_label = 1
+        for k in range(1, n):
+            cx, cy, cw, ch = cstats[k, :4]
+            bx0, by0 = max(0, c * cx - c // 2 - 1), max(0, c * cy - c // 2 - 1)
+            bx1, by1 = min(w, c * (cx + cw) - c // 2 + 1), min(h, c * (cy + ch) - c // 2 + 1)
+            m, blab, bstats, _ = cv2.connectedComponentsWithStats(
+                np.ascontiguousarray(mask[by0:by1, bx0:bx1]), connectivity=8)
+            if m <= 1:
+                continue
+            region = labels[by0:by1, bx0:bx1]
+            inside = blab > 0
+            region[inside] = blab[inside] + (next_label - 1)
+            bstats = bstats[1:].copy()
+            bstats[:, 0] += bx0
+            bstats[:, 1] += by0
+            all_stats.append(bstats)
+            next_label += m - 1
+        return labels, np.concatenate(all_stats)
+
+    def _background(self, sub):
+        stride = max(1, int(math.sqrt(sub.size / 1024)))
+        rows = sub[::stride]
+        level = float(np.median(rows[:, ::stride]))
+        # Horizontal neighbour differences: zero-median on any smooth background.
+        diff = np.abs(np.diff(rows.astype(np.float32), axis=1)[:, ::stride])
+        noise = 1.4826 * float(np.median(diff)) / math.sqrt(2.0)
+        return level, noise
+
+    def _measure(self, sub, labels, stat, label, bg, image_edges):
+        bx, by, bw, bh = (int(s) for s in stat[:4])
+        hs, ws = sub.shape
+        touches = (bx == 0, by == 0, bx + bw == ws, by + bh == hs)
+        if any(t and e for t, e in zip(touches, image_edges)):
+            return None            # cut by the image border: centroid biased
+        ring = self._margin + 2
+        rx0, ry0 = max(0, bx - ring), max(0, by - ring)
+        rx1, ry1 = min(ws, bx + bw + ring), min(hs, by + bh + ring)
+        patch = sub[ry0:ry1, rx0:rx1].astype(np.float32)
+        comp = (labels[ry0:ry1, rx0:rx1] == label).view(np.uint8)
+        grown = cv2.dilate(comp, np.ones((3, 3), np.uint8))
+        outside = cv2.dilate(grown, np.ones((5, 5), np.uint8)) == 0
+        local_bg = float(np.median(patch[outside])) if np.count_nonzero(outside) >= 8 else bg
+        weights = np.clip(patch - local_bg, 0.0, None) * grown
+        flux = float(weights.sum())
+        if flux <= 0:
+            return None
+        ys, xs = np.mgrid[0:patch.shape[0], 0:patch.shape[1]]
+        cu = float((weights * xs).sum()) / flux
+        cv = float((weights * ys).sum()) / flux
+        du, dv = xs - cu, ys - cv
+        cuu = float((weights * du * du).sum()) / flux
+        cvv = float((weights * dv * dv).sum()) / flux
+        cuv = float((weights * du * dv).sum()) / flux
+        half_tr = 0.5 * (cuu + cvv)
+        disc = math.sqrt(max(0.0, 0.25 * (cuu - cvv) ** 2 + cuv * cuv))
+        l1, l2 = half_tr + disc, max(0.0, half_tr - disc)
+        if l1 <= 0:
+            return None
+        radius = 2.0 * math.sqrt(math.sqrt(l1 * l2))
+        roundness = math.sqrt(l2 / l1)
+        if not (self.min_radius_px <= radius <= self.max_radius_px):
+            return None
+        if roundness < self.min_roundness:
+            return None
+        edge = any(touches)
+        return _Candidate(uv=np.array([cu + rx0, cv + ry0]), radius=radius, roundness=roundness,
+                          flux=flux, touches_edge=edge)
+
+
+_ARUCO_PREFIX = 'DICT_'
+
+
+def _aruco_dictionary(name):
+    key = str(name).strip().upper()
+    if not key.startswith(_ARUCO_PREFIX):
+        key = _ARUCO_PREFIX + key
+    value = getattr(cv2.aruco, key, None)
+    if not isinstance(value, int):
+        known = sorted(k for k in dir(cv2.aruco) if k.startswith(_ARUCO_PREFIX))
+        raise ValueError(f'dictionary {name!r} is not an OpenCV ArUco dictionary '
+                         f'(one of {", ".join(known)})')
+    return cv2.aruco.getPredefinedDictionary(value)
+
+
+def diagonal_intersection(corners):
+    """
+    Return the intersection (2,) of the diagonals 0-2 and 1-3 of a quadrilateral (4, 2).
+
+    Under perspective the image of a square's centre is where its diagonals cross, not the
+    mean of its corners (perspective does not preserve ratios of lengths, the corner mean is
+    off by up to a pixel on a tilted tag; it does preserve incidence).
+    """
+    c = np.asarray(corners, dtype=float).reshape(4, 2)
+    d1, d2 = c[2] - c[0], c[3] - c[1]
+    a = np.column_stack([d1, -d2])
+    if abs(np.linalg.det(a)) < 1e-9 * max(1.0, float(np.dot(d1, d1) + np.dot(d2, d2))):
+        return None
+    s, _ = np.linalg.solve(a, c[1] - c[0])
+    return c[0] + s * d1
+
+
+class ArucoDetector(Detector):
+    """
+    An ArUco / AprilTag tag's centre, by ``cv2.aruco.ArucoDetector`` with sub-pixel corners.
+
+    The point is the intersection of the refined corners' diagonals (see
+    :func:`diagonal_intersection`).  ``marker_id`` None returns every tag of the dictionary,
+    otherwise only that id.  ``minMarkerDistanceRate`` is 0 because the default missed
+    strongly tilted tags under noise (DESIGN section 8).  ``quality`` is the shortest side in
+    pixels over 32, capped at 1 (corner accuracy degrades on small tags).
+    """
+
+    def __init__(self, dictionary='DICT_4X4_50', marker_id=None, corner_refine_win_size=5,
+                 min_marker_distance_rate=0.0):
+        self.dictionary_name = str(dictionary)
+        self._dictionary = _aruco_dictionary(dictionary)
+        n_ids = int(self._dictionary.bytesList.shape[0])
+        if marker_id is not None:
+            if int(marker_id) != marker_id or not 0 <= int(marker_id) < n_ids:
+                raise ValueError(f'marker_id must be None or an integer in [0, {n_ids}) for '
+                                 f'{dictionary}, got {marker_id!r}')
+            marker_id = int(marker_id)
+        self.marker_id = marker_id
+        if int(corner_refine_win_size) != corner_refine_win_size or corner_refine_win_size < 1:
+            raise ValueError(f'corner_refine_win_size must be a positive integer, got '
+                             f'{corner_refine_win_size!r}')
+        params = cv2.aruco.DetectorParameters()
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        params.cornerRefinementWinSize = int(corner_refine_win_size)
+        params.minMarkerDistanceRate = _check_positive(
+            'min_marker_distance_rate', min_marker_distance_rate, allow_zero=True)
+        self._detector = cv2.aruco.ArucoDetector(self._dictionary, params)
+        self.last_status = 'none'
+
+    def detect(self, image):
+        """Return one :class:`Detection` per tag found (sorted by id)."""
+        gray = to_gray(image)
+        if gray.dtype != np.uint8:
+            scale = 255.0 / _white_level(gray.dtype)
+            gray = cv2.convertScaleAbs(gray, alpha=scale)
+        corners, ids, _ = self._detector.detectMarkers(np.ascontiguousarray(gray))
+        out = []
+        if ids is not None:
+            for quad, tag in zip(corners, ids.reshape(-1)):
+                if self.marker_id is not None and int(tag) != self.marker_id:
+                    continue
+                quad = quad.reshape(4, 2).astype(float)
+                centre = diagonal_intersection(quad)
+                if centre is None:
+                    continue
+                sides = np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)
+                diag = 0.25 * (np.linalg.norm(quad[2] - quad[0])
+                               + np.linalg.norm(quad[3] - quad[1]))
+                out.append(Detection(uv=centre, id=int(tag),
+                                     quality=float(min(1.0, sides.min() / 32.0)),
+                                     radius_px=float(diag)))
+        out.sort(key=lambda d: d.id)
+        self.last_status = 'ok' if out else 'none'
+        return out
+
+
+_DETECTORS = {'sphere': SphereDetector, 'aruco': ArucoDetector}
+
+
+def make_detector(marker_type, **params):
+    """
+    Build the detector for ``marker_type`` ('sphere' or 'aruco') with keyword ``params``.
+
+    Unknown marker types and parameter names raise ValueError naming them; values are checked
+    by the detector's constructor (ValueError naming the parameter).
+    """
+    cls = _DETECTORS.get(str(marker_type).strip().lower())
+    if cls is None:
+        raise ValueError(f'marker_type {marker_type!r} is not supported (one of '
+                         f'{", ".join(sorted(_DETECTORS))}; charuco is not implemented yet)')
+    accepted = set(inspect.signature(cls.__init__).parameters) - {'self'}
+    unknown = sorted(set(params) - accepted)
+    if unknown:
+        raise ValueError(f'unknown {marker_type} detector parameter(s) {", ".join(unknown)} '
+                         f'(accepted: {", ".join(sorted(accepted))})')
+    return cls(**params)

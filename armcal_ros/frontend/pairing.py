@@ -1,0 +1,526 @@
+"""
+Time pairing of images with joint states, stillness, and pooling of dwells into samples.
+
+Flow (the node and the offline tool use it the same way)::
+
+    pairer = FramePairer(chain.joint_names, fk)
+    pooler = DwellPooler(fk)
+    status, ready = pairer.add_joint_state(stamp_ns, names, positions)   # per JointState
+    ready = pairer.add_frame(camera, stamp_ns, payload)                  # per image
+    for frame in ready:            # frames whose joint history is now known
+        if frame.status is PairStatus.STILL:
+            detections = detector[frame.camera].detect(decode(frame.payload))
+        samples += pooler.add(frame, detections)
+
+A frame is held by the pairer until the joint history covers ``stamp + speed_window`` (joint
+states arrive after the image they bracket), so the caller decides what the payload is: an
+undecoded message (detect only still frames: cheapest) or detections.
+
+Stillness is expressed as a marker speed (m/s) at the image stamp.  The marker's apparent
+error from motion is speed x timing uncertainty (stamp error, unsynchronised exposure); the
+default bounds it by 0.1 px of smear for a camera with f = 800 px at 1.5 m and 5 ms of stamp
+jitter: 0.1 px * 1.5 m / 800 px / 0.005 s = 0.0375 m/s (see :func:`max_speed_for_smear`).
+"""
+
+from dataclasses import dataclass
+import enum
+import math
+
+import numpy as np
+
+from .samples import Observation, Sample
+
+
+def max_speed_for_smear(max_smear_px=0.1, focal_px=800.0, distance_m=1.5,
+                        timing_uncertainty_s=0.005):
+    """
+    Return the marker speed (m/s) that moves its image by ``max_smear_px``.
+
+    Over the timing uncertainty: v = max_smear_px * distance_m / (focal_px *
+    timing_uncertainty_s).
+    """
+    for name, value in (('max_smear_px', max_smear_px), ('focal_px', focal_px),
+                        ('distance_m', distance_m),
+                        ('timing_uncertainty_s', timing_uncertainty_s)):
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f'{name} must be positive, got {value}')
+    return max_smear_px * distance_m / (focal_px * timing_uncertainty_s)
+
+
+DEFAULT_MAX_MARKER_SPEED = max_speed_for_smear()   # 0.0375 m/s
+
+
+class JointStatus(enum.Enum):
+    """Outcome of :meth:`JointHistory.add` (the caller counts them)."""
+
+    OK = 'ok'
+    TIME_JUMP = 'time_jump'          # stamp went back by more than jump_threshold: history reset
+    OUT_OF_ORDER = 'out_of_order'    # slightly older than the newest sample: dropped
+    DUPLICATE = 'duplicate'          # same stamp as the newest sample: dropped
+    NON_FINITE = 'non_finite'        # NaN or inf among the chain's joints: dropped
+    MISSING_JOINT = 'missing_joint'  # a chain joint is not in the message: dropped
+    MALFORMED = 'malformed'          # names and positions differ in length: dropped
+
+
+class PairStatus(enum.Enum):
+    """Outcome of a joint lookup or of pairing a frame."""
+
+    OK = 'ok'                        # interpolation succeeded
+    STILL = 'still'                  # paired, marker slower than max_marker_speed
+    MOVING = 'moving'                # paired, marker too fast
+    EMPTY = 'empty'                  # no joint history yet
+    BEFORE_HISTORY = 'before_history'
+    AFTER_HISTORY = 'after_history'  # live: wait for newer joint states
+    GAP = 'gap'                      # bracketing joint samples too far apart
+    STALE = 'stale'                  # pending too long (joint stream stalled): dropped
+    TIME_JUMP = 'time_jump'          # the frame belongs to a timeline the clock jumped away from
+
+
+def _as_int_ns(stamp_ns, name='stamp_ns'):
+    try:
+        value = int(stamp_ns)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ValueError(f'{name} must be an integer number of nanoseconds, got '
+                         f'{stamp_ns!r}') from exc
+    return value
+
+
+class JointHistory:
+    """
+    A bounded, time-ordered ring of joint samples in chain order, with linear interpolation.
+
+    Joints are matched by name (an index map is cached per distinct name tuple, so messages
+    whose joint order changes, or which carry extra joints such as a gripper, are handled);
+    a message missing a chain joint is refused.  Joint differences larger than pi between two
+    neighbouring samples are taken as a wrap of a continuous joint and interpolated the short
+    way.
+    """
+
+    def __init__(self, joint_names, capacity=4096, max_gap_ns=50_000_000,
+                 jump_threshold_ns=500_000_000):
+        self.joint_names = tuple(str(n) for n in joint_names)
+        if not self.joint_names or len(set(self.joint_names)) != len(self.joint_names):
+            raise ValueError(f'joint_names must be non-empty and unique, got {joint_names!r}')
+        if int(capacity) < 2:
+            raise ValueError(f'capacity must be >= 2, got {capacity!r}')
+        self.capacity = int(capacity)
+        self.max_gap_ns = _as_int_ns(max_gap_ns, 'max_gap_ns')
+        self.jump_threshold_ns = _as_int_ns(jump_threshold_ns, 'jump_threshold_ns')
+        if self.max_gap_ns <= 0 or self.jump_threshold_ns < 0:
+            raise ValueError('max_gap_ns must be positive and jump_threshold_ns non-negative')
+        n = len(self.joint_names)
+        self._t = np.zeros(2 * self.capacity, np.int64)
+        self._q = np.zeros((2 * self.capacity, n))
+        self._start = self._end = 0
+        self._index_maps = {}
+        self.missing = ()           # the chain joints absent from the last refused message
+
+    def __len__(self):
+        return self._end - self._start
+
+    @property
+    def stamps(self):
+        """Return a view of the stored stamps in ns, oldest first."""
+        return self._t[self._start:self._end]
+
+    @property
+    def positions(self):
+        """Return a view of the stored joint vectors in chain order, shape (len, n)."""
+        return self._q[self._start:self._end]
+
+    @property
+    def first_stamp(self):
+        """Oldest stamp (ns) or None."""
+        return int(self._t[self._start]) if len(self) else None
+
+    @property
+    def last_stamp(self):
+        """Newest stamp (ns) or None."""
+        return int(self._t[self._end - 1]) if len(self) else None
+
+    def clear(self):
+        """Forget every sample."""
+        self._start = self._end = 0
+
+    def _index_map(self, names):
+        key = tuple(names)
+        found = self._index_maps.get(key)
+        if found is None:
+            where = {name: i for i, name in enumerate(key)}
+            missing = tuple(n for n in self.joint_names if n not in where)
+            found = missing if missing else np.array([where[n] for n in self.joint_names],
+                                                     dtype=np.intp)
+            if len(self._index_maps) < 64:
+                self._index_maps[key] = found
+        return found
+
+    def add(self, stamp_ns, names, positions):
+        """
+        Add one JointState (stamp, names, positions); return a :class:`JointStatus`.
+
+        A stamp older than the newest by more than ``jump_threshold_ns`` (a looping bag, a
+        restarted simulation clock) clears the history, stores the sample and returns
+        TIME_JUMP; a slightly older one is dropped (OUT_OF_ORDER).
+        """
+        stamp_ns = _as_int_ns(stamp_ns)
+        names = tuple(names)
+        positions = np.asarray(positions, dtype=float).reshape(-1)
+        if positions.shape[0] != len(names):
+            return JointStatus.MALFORMED
+        index = self._index_map(names)
+        if isinstance(index, tuple):
+            self.missing = index
+            return JointStatus.MISSING_JOINT
+        q = positions[index]
+        if not np.all(np.isfinite(q)):
+            return JointStatus.NON_FINITE
+        status = JointStatus.OK
+        if len(self):
+            last = self.last_stamp
+            if stamp_ns == last:
+                return JointStatus.DUPLICATE
+            if stamp_ns < last:
+                if last - stamp_ns <= self.jump_threshold_ns:
+                    return JointStatus.OUT_OF_ORDER
+                self.clear()
+                status = JointStatus.TIME_JUMP
+        if self._end == self._t.shape[0]:
+            keep = self.capacity - 1
+            self._t[:keep] = self._t[self._end - keep:self._end]
+            self._q[:keep] = self._q[self._end - keep:self._end]
+            self._start, self._end = 0, keep
+        self._t[self._end] = stamp_ns
+        self._q[self._end] = q
+        self._end += 1
+        if self._end - self._start > self.capacity:
+            self._start += 1
+        return status
+
+    def lookup(self, stamps_ns):
+        """
+        Interpolate at several stamps: return (statuses (M,) of PairStatus, positions (M, n)).
+
+        Rows whose status is not OK are NaN.
+        """
+        ts = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+        out = np.full((ts.shape[0], len(self.joint_names)), np.nan)
+        statuses = np.full(ts.shape[0], PairStatus.OK, dtype=object)
+        if not len(self):
+            statuses[:] = PairStatus.EMPTY
+            return statuses, out
+        t, q = self.stamps, self.positions
+        hi = np.searchsorted(t, ts, side='left')
+        exact = (hi < t.shape[0]) & (t[np.minimum(hi, t.shape[0] - 1)] == ts)
+        before = (hi == 0) & ~exact
+        after = hi == t.shape[0]
+        statuses[before] = PairStatus.BEFORE_HISTORY
+        statuses[after] = PairStatus.AFTER_HISTORY
+        out[exact] = q[hi[exact]]
+        inner = ~(before | after | exact)
+        if np.any(inner):
+            h = hi[inner]
+            lo = h - 1
+            gap = t[h] - t[lo]
+            a = ((ts[inner] - t[lo]) / gap)[:, None]
+            d = q[h] - q[lo]
+            d = np.where(np.abs(d) > np.pi, (d + np.pi) % (2 * np.pi) - np.pi, d)
+            vals = q[lo] + a * d
+            bad_gap = gap > self.max_gap_ns
+            vals[bad_gap] = np.nan
+            out[inner] = vals
+            st = statuses[inner]
+            st[bad_gap] = PairStatus.GAP
+            statuses[inner] = st
+        return statuses, out
+
+    def interpolate(self, stamp_ns):
+        """Return (PairStatus, q (n,) or None) at one stamp, by linear interpolation."""
+        statuses, q = self.lookup([_as_int_ns(stamp_ns)])
+        status = statuses[0]
+        return status, (q[0] if status is PairStatus.OK else None)
+
+
+@dataclass
+class PairedFrame:
+    """
+    A frame whose pairing is decided.
+
+    ``q`` (n,) joint angles at the stamp and ``point`` (3,) the nominal marker position, set
+    when ``status`` is STILL or MOVING; ``speed`` marker speed (m/s) or NaN; ``payload``
+    whatever the caller handed to :meth:`FramePairer.add_frame`.
+    """
+
+    camera: str
+    stamp_ns: int
+    payload: object
+    status: PairStatus
+    q: np.ndarray = None
+    point: np.ndarray = None
+    speed: float = math.nan
+
+
+class FramePairer:
+    """
+    Pairs camera frames with interpolated joint angles and decides stillness.
+
+    ``fk(Q (M, n)) -> (M, 3)`` gives the nominal marker position for joint vectors in the
+    order of ``joint_names``.  The marker speed at stamp t is
+
+        v = max(|p(t) - p(t - W)|, |p(t + W) - p(t)|) / W,   W = speed_window_ns,
+
+    over the interpolated joint history: the window averages out joint-encoder noise over the
+    few ms between JointState messages, and the max of the two halves still catches the arm
+    reversing through t.  A frame is STILL when v <= ``max_marker_speed``.
+
+    Frames wait (at most ``max_pending`` of them) until the history reaches t + W.
+    """
+
+    def __init__(self, joint_names, fk, max_marker_speed=DEFAULT_MAX_MARKER_SPEED,
+                 speed_window_ns=20_000_000, max_gap_ns=50_000_000,
+                 jump_threshold_ns=500_000_000, capacity=4096, max_pending=256):
+        if not callable(fk):
+            raise ValueError('fk must be callable: fk(Q (M, n)) -> (M, 3)')
+        self.fk = fk
+        self.max_marker_speed = float(max_marker_speed)
+        if not (math.isfinite(self.max_marker_speed) and self.max_marker_speed > 0):
+            raise ValueError(f'max_marker_speed must be positive (m/s), got {max_marker_speed}')
+        self.speed_window_ns = _as_int_ns(speed_window_ns, 'speed_window_ns')
+        if self.speed_window_ns <= 0:
+            raise ValueError(f'speed_window_ns must be positive, got {speed_window_ns}')
+        if int(max_pending) < 1:
+            raise ValueError(f'max_pending must be >= 1, got {max_pending!r}')
+        self.max_pending = int(max_pending)
+        self.history = JointHistory(joint_names, capacity=capacity, max_gap_ns=max_gap_ns,
+                                    jump_threshold_ns=jump_threshold_ns)
+        self._pending = []
+
+    @property
+    def joint_names(self):
+        """Chain joint names, the order of ``q``."""
+        return self.history.joint_names
+
+    @property
+    def n_pending(self):
+        """Frames waiting for newer joint states."""
+        return len(self._pending)
+
+    def add_joint_state(self, stamp_ns, names, positions):
+        """Add a JointState; return (JointStatus, frames that became decidable)."""
+        status = self.history.add(stamp_ns, names, positions)
+        ready = []
+        if status is JointStatus.TIME_JUMP:
+            # Frames stamped after the new time belong to the old timeline.
+            limit = int(stamp_ns) + self.history.jump_threshold_ns
+            keep = []
+            for frame in self._pending:
+                if frame[1] > limit:
+                    ready.append(PairedFrame(frame[0], frame[1], frame[2], PairStatus.TIME_JUMP))
+                else:
+                    keep.append(frame)
+            self._pending = keep
+        if status in (JointStatus.OK, JointStatus.TIME_JUMP) and self._pending:
+            ready.extend(self._resolve(final=False))
+        return status, ready
+
+    def add_frame(self, camera, stamp_ns, payload=None):
+        """Queue a frame; return the frames (this one or earlier ones) now decided."""
+        self._pending.append((str(camera), _as_int_ns(stamp_ns), payload))
+        ready = self._resolve(final=False)
+        while len(self._pending) > self.max_pending:
+            camera, stamp, payload = self._pending.pop(0)
+            ready.append(PairedFrame(camera, stamp, payload, PairStatus.STALE))
+        return ready
+
+    def flush(self):
+        """Decide every pending frame with the history as it is (end of a bag)."""
+        return self._resolve(final=True)
+
+    def reset(self):
+        """Clear the joint history and drop pending frames (returned as STALE)."""
+        dropped = [PairedFrame(c, s, p, PairStatus.STALE) for c, s, p in self._pending]
+        self._pending = []
+        self.history.clear()
+        return dropped
+
+    def _resolve(self, final):
+        if not self._pending:
+            return []
+        last = self.history.last_stamp
+        w = self.speed_window_ns
+        ready, keep = [], []
+        for frame in self._pending:
+            if not final and (last is None or frame[1] + w > last):
+                first = self.history.first_stamp
+                if first is not None and frame[1] - w < first:
+                    ready.append(PairedFrame(*frame, PairStatus.BEFORE_HISTORY))
+                else:
+                    keep.append(frame)
+            else:
+                ready.append(frame)
+        self._pending = keep
+        decided = [f for f in ready if isinstance(f, tuple)]
+        out = [f for f in ready if not isinstance(f, tuple)]
+        if decided:
+            out.extend(self._pair(decided))
+        return out
+
+    def _pair(self, frames):
+        w = self.speed_window_ns
+        stamps = np.array([[s - w, s, s + w] for _, s, _ in frames], dtype=np.int64)
+        statuses, q = self.history.lookup(stamps.reshape(-1))
+        statuses = statuses.reshape(-1, 3)
+        q = q.reshape(len(frames), 3, -1)
+        good = np.array([all(s is PairStatus.OK for s in row) for row in statuses])
+        points = np.full((len(frames), 3, 3), np.nan)
+        if np.any(good):
+            p = np.asarray(self.fk(q[good].reshape(-1, q.shape[2])), dtype=float)
+            points[good] = p.reshape(-1, 3, 3)
+        out = []
+        for i, (camera, stamp, payload) in enumerate(frames):
+            if not good[i]:
+                row = [s for s in statuses[i] if s is not PairStatus.OK]
+                status = row[0]
+                if PairStatus.GAP in row:
+                    status = PairStatus.GAP
+                elif statuses[i][0] is PairStatus.BEFORE_HISTORY:
+                    status = PairStatus.BEFORE_HISTORY
+                out.append(PairedFrame(camera, stamp, payload, status))
+                continue
+            p0, p1, p2 = points[i]
+            speed = max(np.linalg.norm(p1 - p0), np.linalg.norm(p2 - p1)) / (w * 1e-9)
+            status = PairStatus.STILL if speed <= self.max_marker_speed else PairStatus.MOVING
+            out.append(PairedFrame(camera, stamp, payload, status, q=q[i, 1].copy(),
+                                   point=p1.copy(), speed=float(speed)))
+        return out
+
+
+class _Dwell:
+    def __init__(self, frame):
+        self.anchor = frame.point
+        self.first_stamp = self.last_stamp = frame.stamp_ns
+        self.qs = []
+        self.stamps = []
+        self.per_camera = {}      # camera -> list of (stamp, {id: uv})
+
+    def add(self, frame, detections):
+        self.qs.append(frame.q)
+        self.stamps.append(frame.stamp_ns)
+        self.last_stamp = max(self.last_stamp, frame.stamp_ns)
+        self.first_stamp = min(self.first_stamp, frame.stamp_ns)
+        if detections:
+            uvs = {int(d.id): np.asarray(d.uv, dtype=float) for d in detections}
+            self.per_camera.setdefault(frame.camera, []).append((frame.stamp_ns, uvs))
+
+
+class DwellPooler:
+    """
+    Pools consecutive still frames at one place into one :class:`Sample`.
+
+    A dwell is open while STILL frames arrive whose nominal marker position stays within
+    ``dwell_radius`` (m) of the dwell's first one, at most ``max_gap_ns`` apart.  It is closed
+    (and a sample emitted if it has enough data) by a MOVING frame, a still frame elsewhere, a
+    gap, a TIME_JUMP or GAP frame, a dwell longer than ``max_dwell_ns`` (a parked arm still
+    yields samples regularly; the store merges them) or :meth:`poll` / :meth:`flush`.
+
+    On closing, per camera and target id: the median of the frames' detections, frames
+    further than ``outlier_px`` from it dropped (a spurious detection in one frame), and the
+    mean of the rest; kept if at least ``min_frames`` remain.  ``spread_px`` is their RMS
+    distance from the mean.  The sample's ``q`` is the mean joint vector and
+    ``point_nominal = fk(q)``.  At most ``max_frames`` frames per camera are kept per dwell.
+    """
+
+    def __init__(self, fk, dwell_radius=0.001, max_gap_ns=500_000_000,
+                 max_dwell_ns=10_000_000_000, min_frames=2, outlier_px=2.0, max_frames=200):
+        if not callable(fk):
+            raise ValueError('fk must be callable: fk(Q (M, n)) -> (M, 3)')
+        self.fk = fk
+        self.dwell_radius = float(dwell_radius)
+        if not self.dwell_radius > 0:
+            raise ValueError(f'dwell_radius must be positive (m), got {dwell_radius}')
+        self.max_gap_ns = _as_int_ns(max_gap_ns, 'max_gap_ns')
+        self.max_dwell_ns = _as_int_ns(max_dwell_ns, 'max_dwell_ns')
+        if self.max_gap_ns <= 0 or self.max_dwell_ns <= 0:
+            raise ValueError('max_gap_ns and max_dwell_ns must be positive')
+        if int(min_frames) < 1:
+            raise ValueError(f'min_frames must be >= 1, got {min_frames!r}')
+        self.min_frames = int(min_frames)
+        self.outlier_px = float(outlier_px)
+        if not self.outlier_px > 0:
+            raise ValueError(f'outlier_px must be positive, got {outlier_px}')
+        if int(max_frames) < self.min_frames:
+            raise ValueError(f'max_frames must be >= min_frames, got {max_frames!r}')
+        self.max_frames = int(max_frames)
+        self._dwell = None
+
+    @property
+    def open(self):
+        """Return True while a dwell is being accumulated."""
+        return self._dwell is not None
+
+    def add(self, frame, detections=()):
+        """Feed one :class:`PairedFrame` and its detections; return samples completed."""
+        out = []
+        if frame.status is not PairStatus.STILL:
+            if frame.status in (PairStatus.MOVING, PairStatus.GAP, PairStatus.TIME_JUMP):
+                out.extend(self.flush())
+            return out
+        dwell = self._dwell
+        if dwell is not None:
+            far = np.linalg.norm(frame.point - dwell.anchor) > self.dwell_radius
+            gap = (frame.stamp_ns - dwell.last_stamp > self.max_gap_ns
+                   or dwell.first_stamp - frame.stamp_ns > self.max_gap_ns)
+            too_long = frame.stamp_ns - dwell.first_stamp > self.max_dwell_ns
+            if far or gap or too_long:
+                out.extend(self.flush())
+        if self._dwell is None:
+            self._dwell = _Dwell(frame)
+        frames = self._dwell.per_camera.get(frame.camera, ())
+        if len(frames) < self.max_frames:
+            self._dwell.add(frame, detections)
+        return out
+
+    def poll(self, now_ns):
+        """Close the dwell if nothing was added for ``max_gap_ns`` before ``now_ns``."""
+        if self._dwell is not None and int(now_ns) - self._dwell.last_stamp > self.max_gap_ns:
+            return self.flush()
+        return []
+
+    def flush(self):
+        """Close the current dwell; return [sample] or [] when it had too little data."""
+        dwell, self._dwell = self._dwell, None
+        if dwell is None:
+            return []
+        observations = {}
+        for camera, frames in dwell.per_camera.items():
+            obs = self._pool_camera(frames)
+            if obs is not None:
+                observations[camera] = obs
+        if not observations:
+            return []
+        q = np.mean(np.asarray(dwell.qs), axis=0)
+        point = np.asarray(self.fk(q[None, :]), dtype=float).reshape(3)
+        stamp = int(np.median(np.asarray(dwell.stamps, dtype=np.int64)))
+        return [Sample(point_nominal=point, observations=observations, stamp_ns=stamp, q=q)]
+
+    def _pool_camera(self, frames):
+        ids = sorted({i for _, uvs in frames for i in uvs})
+        uv_out, id_out, sq_sum, n_sq = [], [], 0.0, 0
+        frames_used = set()
+        for tid in ids:
+            rows = [(k, uvs[tid]) for k, (_, uvs) in enumerate(frames) if tid in uvs]
+            pts = np.array([uv for _, uv in rows])
+            med = np.median(pts, axis=0)
+            inlier = np.linalg.norm(pts - med, axis=1) <= self.outlier_px
+            if np.count_nonzero(inlier) < self.min_frames:
+                continue
+            mean = pts[inlier].mean(axis=0)
+            sq_sum += float(np.sum((pts[inlier] - mean) ** 2))
+            n_sq += int(np.count_nonzero(inlier))
+            frames_used.update(k for (k, _), ok in zip(rows, inlier) if ok)
+            uv_out.append(mean)
+            id_out.append(tid)
+        if not uv_out:
+            return None
+        stamps = np.array([frames[k][0] for k in sorted(frames_used)], dtype=np.int64)
+        return Observation(uv=np.array(uv_out), ids=np.array(id_out), n_frames=len(frames_used),
+                           spread_px=math.sqrt(sq_sum / n_sq), stamp_ns=int(np.median(stamps)))

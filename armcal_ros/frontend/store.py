@@ -1,0 +1,378 @@
+"""
+Bounded, spatially de-duplicated store of samples, saved atomically so a restart resumes.
+
+Policy (memory and solve time are bounded by the workspace, not by the session's length):
+
+- a new sample within ``same_point_tolerance`` of a stored one is the *same* 3D point (the
+  arm came back, or a parked arm produced several dwells): their observations are merged,
+  keeping per camera the better one (more frames, then less spread);
+- a new sample within ``min_sample_spacing`` of a stored one (but not the same point) is
+  redundant: the better of the two samples (more cameras, more frames, less spread) is kept
+  and the other dropped.  Observations are never moved between different 3D points, which
+  would bias the adjustment by up to the spacing;
+- when ``max_samples`` are stored, a sample farther from its nearest neighbour than the
+  closest stored pair is from each other replaces the worse of that pair; otherwise it is
+  dropped.  This greedily keeps the stored points spread over the workspace (it maximises
+  the smallest spacing) rather than keeping the most recent ones, which would all come from
+  wherever the operator happens to be working.
+"""
+
+from dataclasses import dataclass
+import enum
+import json
+import os
+import tempfile
+
+import numpy as np
+
+from .samples import Observation, Sample
+
+FORMAT_VERSION = 1
+FILE_NAME = 'samples.npz'
+
+
+class AddResult(enum.Enum):
+    """What :meth:`SampleStore.add` did with a sample."""
+
+    ADDED = 'added'
+    MERGED = 'merged'          # same point: observations merged into the stored sample
+    REPLACED = 'replaced'      # within spacing and better: took the stored sample's place
+    DROPPED = 'dropped'        # within spacing and not better, or the store is full
+
+
+@dataclass
+class SolverArrays:
+    """
+    A store's content as flat arrays for the adjustment.
+
+    ``points`` (N, 3) nominal 3D points (metres), ``sample_ids`` (N,); per observation (M):
+    ``camera_index`` into ``camera_names``, ``point_index`` into ``points``, ``uv`` (M, 2),
+    ``target_ids`` (M,), ``n_frames`` (M,), ``spread_px`` (M,) (the observation's spread,
+    repeated for each of its K points).
+    """
+
+    points: np.ndarray
+    sample_ids: np.ndarray
+    camera_names: tuple
+    camera_index: np.ndarray
+    point_index: np.ndarray
+    uv: np.ndarray
+    target_ids: np.ndarray
+    n_frames: np.ndarray
+    spread_px: np.ndarray
+
+
+class SampleStore:
+    """
+    Samples keyed by id with bounded size and a minimum spacing (see the module policy).
+
+    ``joint_names`` (optional) is recorded with the samples so that a saved store is not
+    resumed against a different robot.
+    """
+
+    def __init__(self, max_samples=2000, min_sample_spacing=0.005, same_point_tolerance=0.0005,
+                 joint_names=None):
+        if int(max_samples) != max_samples or max_samples < 1:
+            raise ValueError(f'max_samples must be a positive integer, got {max_samples!r}')
+        self.max_samples = int(max_samples)
+        self.min_sample_spacing = float(min_sample_spacing)
+        if not self.min_sample_spacing >= 0:
+            raise ValueError(f'min_sample_spacing must be >= 0 (m), got {min_sample_spacing}')
+        self.same_point_tolerance = float(same_point_tolerance)
+        if not 0 <= self.same_point_tolerance <= max(self.min_sample_spacing, 0.0):
+            raise ValueError(f'same_point_tolerance must be in [0, min_sample_spacing], '
+                             f'got {same_point_tolerance}')
+        self.joint_names = None if joint_names is None else tuple(joint_names)
+        self._samples = []
+        self._points = np.zeros((self.max_samples + 1, 3))
+        self._nn_dist = np.zeros(self.max_samples + 1)
+        self._nn_idx = np.zeros(self.max_samples + 1, np.intp)
+        self._next_id = 0
+        self.revision = 0          # incremented on every change
+        self.counts = {r: 0 for r in AddResult}
+        self.evicted = 0
+
+    def __len__(self):
+        return len(self._samples)
+
+    def __iter__(self):
+        return iter(list(self._samples))
+
+    @property
+    def samples(self):
+        """Return a copy of the list of stored samples."""
+        return list(self._samples)
+
+    @property
+    def camera_names(self):
+        """Cameras with at least one observation, in order of first appearance by sample id."""
+        names = []
+        for s in sorted(self._samples, key=lambda s: s.id):
+            for name in s.observations:
+                if name not in names:
+                    names.append(name)
+        return tuple(names)
+
+    def clear(self):
+        """Remove every sample (ids keep increasing)."""
+        self._samples = []
+        self.revision += 1
+
+    # -- adding -------------------------------------------------------------------------
+
+    def add(self, sample):
+        """Add ``sample`` under the module's policy; return an :class:`AddResult`."""
+        if not isinstance(sample, Sample):
+            raise ValueError(f'sample must be a Sample, got {type(sample).__name__}')
+        if not sample.observations:
+            raise ValueError('sample has no observations')
+        result = self._add(sample)
+        self.counts[result] += 1
+        if result is not AddResult.DROPPED:
+            self.revision += 1
+        return result
+
+    def _add(self, sample):
+        n = len(self._samples)
+        p = sample.point_nominal
+        if n:
+            d = np.linalg.norm(self._points[:n] - p, axis=1)
+            j = int(np.argmin(d))
+            dist = float(d[j])
+            if dist <= self.same_point_tolerance:
+                self._merge_into(self._samples[j], sample)
+                return AddResult.MERGED
+            if dist < self.min_sample_spacing:
+                if sample.rank() > self._samples[j].rank():
+                    self._remove_at(j)
+                    self._insert(sample)
+                    return AddResult.REPLACED
+                return AddResult.DROPPED
+            if n >= self.max_samples:
+                i = int(np.argmin(self._nn_dist[:n]))
+                if dist <= self._nn_dist[i]:
+                    return AddResult.DROPPED
+                k = int(self._nn_idx[i])
+                worse = i if self._samples[i].rank() < self._samples[k].rank() else k
+                self._remove_at(worse)
+                self.evicted += 1
+        self._insert(sample)
+        return AddResult.ADDED
+
+    @staticmethod
+    def _merge_into(kept, new):
+        for name, obs in new.observations.items():
+            old = kept.observations.get(name)
+            if old is None or obs.better_than(old):
+                kept.observations[name] = obs
+
+    def _insert(self, sample):
+        if sample.id < 0:
+            sample.id = self._next_id
+        self._next_id = max(self._next_id, sample.id + 1)
+        n = len(self._samples)
+        p = sample.point_nominal
+        self._samples.append(sample)
+        self._points[n] = p
+        if n == 0:
+            self._nn_dist[0], self._nn_idx[0] = np.inf, 0
+            return
+        d = np.linalg.norm(self._points[:n] - p, axis=1)
+        j = int(np.argmin(d))
+        self._nn_dist[n], self._nn_idx[n] = d[j], j
+        closer = d < self._nn_dist[:n]
+        self._nn_dist[:n][closer] = d[closer]
+        self._nn_idx[:n][closer] = n
+
+    def _remove_at(self, r):
+        n = len(self._samples)
+        last = n - 1
+        affected = np.flatnonzero(self._nn_idx[:n] == r)
+        self._samples[r] = self._samples[last]
+        self._points[r] = self._points[last]
+        self._nn_dist[r] = self._nn_dist[last]
+        self._nn_idx[r] = self._nn_idx[last]
+        self._samples.pop()
+        n = last
+        self._nn_idx[:n][self._nn_idx[:n] == last] = r
+        affected = {int(a if a != last else r) for a in affected if a != r}
+        for a in affected:
+            if a >= n:
+                continue
+            self._nn_dist[a], self._nn_idx[a] = self._nearest(a, n)
+
+    def _nearest(self, a, n):
+        if n <= 1:
+            return np.inf, a
+        d = np.linalg.norm(self._points[:n] - self._points[a], axis=1)
+        d[a] = np.inf
+        j = int(np.argmin(d))
+        return d[j], j
+
+    def remove(self, sample_id):
+        """Remove the sample with ``sample_id``; return True if it was stored."""
+        for r, s in enumerate(self._samples):
+            if s.id == sample_id:
+                self._remove_at(r)
+                self.revision += 1
+                return True
+        return False
+
+    # -- solver view ----------------------------------------------------------------------
+
+    def arrays(self, camera_names=None):
+        """
+        Return :class:`SolverArrays` in sample-id order.
+
+        ``camera_names`` fixes the camera indexing (observations of other cameras are left
+        out); by default every camera seen, in order of first appearance.
+        """
+        names = self.camera_names if camera_names is None else tuple(camera_names)
+        cam_index = {name: i for i, name in enumerate(names)}
+        samples = sorted(self._samples, key=lambda s: s.id)
+        cam, pidx, uv, tid, nfr, spr = [], [], [], [], [], []
+        for i, s in enumerate(samples):
+            for name, obs in s.observations.items():
+                c = cam_index.get(name)
+                if c is None:
+                    continue
+                k = obs.uv.shape[0]
+                cam.append(np.full(k, c))
+                pidx.append(np.full(k, i))
+                uv.append(obs.uv)
+                tid.append(obs.ids)
+                nfr.append(np.full(k, obs.n_frames))
+                spr.append(np.full(k, obs.spread_px))
+
+        def cat(parts, dtype, shape=(0,)):
+            return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype)
+
+        return SolverArrays(
+            points=(np.array([s.point_nominal for s in samples]) if samples
+                    else np.zeros((0, 3))),
+            sample_ids=np.array([s.id for s in samples], dtype=np.int64),
+            camera_names=names,
+            camera_index=cat(cam, np.intp), point_index=cat(pidx, np.intp),
+            uv=cat(uv, float, (0, 2)), target_ids=cat(tid, np.int64),
+            n_frames=cat(nfr, np.int64), spread_px=cat(spr, float))
+
+    # -- persistence ----------------------------------------------------------------------
+
+    def save(self, directory):
+        """
+        Write ``<directory>/samples.npz`` atomically (temporary file, fsync, os.replace).
+
+        A crash while saving leaves the previous file intact.  Returns the path.
+        """
+        os.makedirs(directory, exist_ok=True)
+        path = os.path.join(directory, FILE_NAME)
+        arrays = self._to_arrays()
+        fd, tmp = tempfile.mkstemp(prefix='.samples-', suffix='.tmp', dir=directory)
+        try:
+            with os.fdopen(fd, 'wb') as f:
+                np.savez_compressed(f, **arrays)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+        return path
+
+    def _to_arrays(self):
+        samples = sorted(self._samples, key=lambda s: s.id)
+        names = self.camera_names
+        cam_index = {name: i for i, name in enumerate(names)}
+        nq = {len(s.q) for s in samples if s.q is not None}
+        if len(nq) > 1:
+            raise ValueError(f'samples have joint vectors of different lengths {sorted(nq)}')
+        nq = nq.pop() if nq else 0
+        n = len(samples)
+        q = np.full((n, nq), np.nan)
+        pose = np.full((n, 4, 4), np.nan)
+        obs_rows, uv, ids = [], [], []
+        offset = 0
+        for i, s in enumerate(samples):
+            if s.q is not None:
+                q[i] = s.q
+            if s.pose is not None:
+                pose[i] = s.pose
+            for name, o in s.observations.items():
+                obs_rows.append((i, cam_index[name], o.n_frames, o.stamp_ns, offset))
+                uv.append(o.uv)
+                ids.append(o.ids)
+                offset += o.uv.shape[0]
+        obs = np.array(obs_rows, dtype=np.int64).reshape(-1, 5)
+        spread = np.array([o.spread_px for s in samples for o in s.observations.values()])
+        meta = dict(version=FORMAT_VERSION, camera_names=list(names),
+                    joint_names=None if self.joint_names is None else list(self.joint_names),
+                    max_samples=self.max_samples, min_sample_spacing=self.min_sample_spacing,
+                    same_point_tolerance=self.same_point_tolerance, next_id=self._next_id)
+        return dict(
+            meta=np.array(json.dumps(meta)),
+            sample_id=np.array([s.id for s in samples], dtype=np.int64),
+            stamp_ns=np.array([s.stamp_ns for s in samples], dtype=np.int64),
+            point=np.array([s.point_nominal for s in samples]).reshape(n, 3),
+            has_q=np.array([s.q is not None for s in samples], dtype=bool),
+            q=q,
+            has_pose=np.array([s.pose is not None for s in samples], dtype=bool),
+            pose=pose,
+            obs=obs, obs_spread=spread.reshape(-1),
+            uv=np.concatenate(uv) if uv else np.zeros((0, 2)),
+            ids=np.concatenate(ids) if ids else np.zeros(0, np.int64))
+
+    @classmethod
+    def load(cls, directory, joint_names=None, **overrides):
+        """
+        Read ``<directory>/samples.npz`` written by :meth:`save`.
+
+        ``joint_names``, if given, must match the saved ones (ValueError otherwise: joint
+        angles from another robot would be meaningless).  ``overrides`` replace the saved
+        ``max_samples`` / ``min_sample_spacing`` / ``same_point_tolerance``; samples are then
+        re-added under the new policy.  Raises FileNotFoundError when there is no file.
+        """
+        path = os.path.join(directory, FILE_NAME)
+        with np.load(path, allow_pickle=False) as data:
+            meta = json.loads(str(data['meta']))
+            if meta.get('version') != FORMAT_VERSION:
+                raise ValueError(f'{path}: unsupported sample store version '
+                                 f'{meta.get("version")!r} (expected {FORMAT_VERSION})')
+            arrays = {k: data[k] for k in data.files if k != 'meta'}
+        saved_joints = meta.get('joint_names')
+        if joint_names is not None and saved_joints is not None \
+                and tuple(saved_joints) != tuple(joint_names):
+            raise ValueError(f'{path}: saved joint_names {saved_joints} differ from '
+                             f'{list(joint_names)}')
+        params = dict(max_samples=meta['max_samples'],
+                      min_sample_spacing=meta['min_sample_spacing'],
+                      same_point_tolerance=meta['same_point_tolerance'])
+        unknown = set(overrides) - set(params)
+        if unknown:
+            raise ValueError(f'unknown store parameter(s) {sorted(unknown)}')
+        params.update(overrides)
+        store = cls(joint_names=joint_names if joint_names is not None else saved_joints,
+                    **params)
+        names = meta['camera_names']
+        obs = arrays['obs']
+        n_points = arrays['uv'].shape[0]
+        per_sample = {}
+        ends = np.append(obs[1:, 4], n_points)
+        for row, end, spread in zip(obs, ends, arrays['obs_spread']):
+            i, c, n_frames, stamp, off = (int(v) for v in row)
+            end = int(end)
+            per_sample.setdefault(i, {})[names[c]] = Observation(
+                uv=arrays['uv'][off:end], ids=arrays['ids'][off:end], n_frames=n_frames,
+                spread_px=float(spread), stamp_ns=stamp)
+        for i in range(arrays['sample_id'].shape[0]):
+            sample = Sample(point_nominal=arrays['point'][i],
+                            observations=per_sample.get(i, {}),
+                            stamp_ns=int(arrays['stamp_ns'][i]),
+                            q=arrays['q'][i].copy() if arrays['has_q'][i] else None,
+                            pose=arrays['pose'][i].copy() if arrays['has_pose'][i] else None,
+                            id=int(arrays['sample_id'][i]))
+            if sample.observations:
+                store.add(sample)
+        store._next_id = max(store._next_id, int(meta.get('next_id', 0)))
+        store.counts = {r: 0 for r in AddResult}
+        return store
