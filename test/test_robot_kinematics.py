@@ -10,6 +10,7 @@ from armcal_ros.robot import KinematicChain, load_urdf
 URDF_DIR = Path(__file__).resolve().parents[1] / 'urdf'
 PUMA = URDF_DIR / 'puma560.urdf'
 UR5 = URDF_DIR / 'ur5.urdf'
+DESK = URDF_DIR / 'desk_arm6.urdf'
 
 PUMA_A = [0.0, 0.4318, 0.0203, 0.0, 0.0, 0.0]
 PUMA_D = [0.0, 0.0, 0.15005, 0.4318, 0.0, 0.0]
@@ -99,6 +100,11 @@ def toy():
     return KinematicChain.from_urdf(TOY_URDF, tip_link='tool0')
 
 
+@pytest.fixture(scope='module')
+def desk():
+    return KinematicChain.from_file(DESK, tip_link='marker')
+
+
 def _random_q(chain, m, rng):
     lo = np.where(np.isfinite(chain.lower), chain.lower, -np.pi)
     hi = np.where(np.isfinite(chain.upper), chain.upper, np.pi)
@@ -131,6 +137,7 @@ def test_puma_chain_attributes(puma):
     np.testing.assert_allclose(puma.upper, qlim[:, 1], atol=1e-12)
     assert puma.chain_links == [f'link_{i}' for i in range(1, 7)]
     np.testing.assert_allclose(puma.link_masses, [0, 17.4, 4.8, 0.82, 0.34, 0.09])
+    np.testing.assert_allclose(puma.effort_limits, [97.6, 186.4, 89.4, 24.2, 20.1, 21.3])
     assert puma.n_errors == 7 * 6 + 6 == len(puma.error_names)
     assert puma.error_names[:7] == ['joint_1/offset', 'joint_1/tx', 'joint_1/ty', 'joint_1/tz',
                                     'joint_1/rx', 'joint_1/ry', 'joint_1/rz']
@@ -185,6 +192,31 @@ def test_ur5_matches_dh_and_known_home_pose():
                                [3.7, 8.393, 2.275, 1.219, 1.219, 0.1879])
 
 
+def test_desk_arm_geometry(desk):
+    tool0 = KinematicChain.from_file(DESK, tip_link='tool0')
+    assert desk.joint_types[3] == 'continuous' and np.isinf(desk.upper[3])
+    home = tool0.fk_pose(np.zeros(6))[0]
+    np.testing.assert_allclose(home[:3, 3], [0.28, 0.0, 0.48], atol=1e-15)
+    np.testing.assert_allclose(home[:3, 2], [1.0, 0.0, 0.0], atol=1e-15)
+    # shoulder up by 90 deg about y: the whole arm swings down in the x-z plane about (0,0,0.2)
+    swung = tool0.fk_pose([0.0, np.pi / 2, 0.0, 0.0, 0.0, 0.0])[0]
+    np.testing.assert_allclose(swung[:3, 3], [0.28, 0.0, -0.08], atol=1e-15)
+    # the shoulder-to-wrist distance depends on the elbow only
+    rng = np.random.default_rng(8)
+    q = _random_q(desk, 100, rng)
+    q[:, 2] = 0.7
+    frames = desk.link_frames(q)
+    dist = np.linalg.norm(frames[:, 4, :3, 3] - frames[:, 1, :3, 3], axis=1)
+    elbow = np.array([0.12 + 0.1, 0.0, 0.03])    # wrist from elbow in link_3
+    upper = np.array([0.0, 0.0, 0.25])
+    c, s = np.cos(0.7), np.sin(0.7)
+    expected = np.linalg.norm(upper + np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]) @ elbow)
+    np.testing.assert_allclose(dist, expected, atol=1e-14)
+    # the marker stays 0.04 m from the tool origin along tool z
+    np.testing.assert_allclose(desk.fk(q) - tool0.fk(q), tool0.fk_pose(q)[:, :3, 2] * 0.04,
+                               atol=1e-15)
+
+
 def test_toy_chain_matches_hand_computation(toy):
     assert toy.joint_names == ['spin', 'slide', 'tilt']
     assert toy.joint_types == ['continuous', 'prismatic', 'revolute']
@@ -224,10 +256,10 @@ def _random_errors(chain, rng, scale=1.0):
     return scale * sig * rng.standard_normal(chain.n_errors)
 
 
-@pytest.mark.parametrize('which', ['puma', 'toy'])
+@pytest.mark.parametrize('which', ['puma', 'toy', 'desk'])
 @pytest.mark.parametrize('with_errors', [False, True])
-def test_jacobian_q_matches_finite_differences(which, with_errors, puma, toy):
-    chain = {'puma': puma, 'toy': toy}[which]
+def test_jacobian_q_matches_finite_differences(which, with_errors, puma, toy, desk):
+    chain = {'puma': puma, 'toy': toy, 'desk': desk}[which]
     rng = np.random.default_rng(10)
     q = _random_q(chain, 20, rng)
     errors = _random_errors(chain, rng) if with_errors else None
@@ -239,10 +271,10 @@ def test_jacobian_q_matches_finite_differences(which, with_errors, puma, toy):
     assert _relative_error(J, J_fd) < 1e-6
 
 
-@pytest.mark.parametrize('which', ['puma', 'toy'])
+@pytest.mark.parametrize('which', ['puma', 'toy', 'desk'])
 @pytest.mark.parametrize('with_errors', [False, True])
-def test_jacobian_errors_matches_finite_differences(which, with_errors, puma, toy):
-    chain = {'puma': puma, 'toy': toy}[which]
+def test_jacobian_errors_matches_finite_differences(which, with_errors, puma, toy, desk):
+    chain = {'puma': puma, 'toy': toy, 'desk': desk}[which]
     rng = np.random.default_rng(11)
     q = _random_q(chain, 10, rng)
     errors = _random_errors(chain, rng) if with_errors else np.zeros(chain.n_errors)
@@ -358,9 +390,9 @@ def test_no_chain_between_frames_is_named():
         KinematicChain(model, base_frame='link_6', tip_link='marker')
 
 
-def test_gravity_torques_are_minus_gradient_of_potential(puma, toy):
+def test_gravity_torques_are_minus_gradient_of_potential(puma, toy, desk):
     g = np.array([1.0, -2.0, -9.5])   # tilted so that the toy's slide feels it too
-    for chain in (puma, toy):
+    for chain in (puma, toy, desk):
         rng = np.random.default_rng(7)
         q = _random_q(chain, 8, rng)
 

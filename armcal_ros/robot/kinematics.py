@@ -166,7 +166,8 @@ class KinematicChain:
 
     Attributes: ``joint_names`` (movable joints, chain order), ``n_joints``, ``joint_types``,
     ``joint_axes`` (n, 3; in each joint's frame), ``lower``/``upper`` (n,) position limits
-    (radians or metres; -inf/+inf for continuous joints), ``velocity_limits`` (n,),
+    (radians or metres; -inf/+inf for continuous joints), ``velocity_limits`` and
+    ``effort_limits`` (n,; inf where the URDF gives none),
     ``error_names``/``n_errors`` (see the module docstring), ``chain_links`` (the child link
     of each movable joint), ``link_masses`` (n,) and ``link_coms`` (n, 3): the mass and
     centre of mass (in the ``chain_links`` frame) of everything rigidly attached to that link
@@ -206,6 +207,7 @@ class KinematicChain:
         self.lower = np.array([j.lower for j in movable], float)
         self.upper = np.array([j.upper for j in movable], float)
         self.velocity_limits = np.array([j.velocity for j in movable], float)
+        self.effort_limits = np.array([j.effort for j in movable], float)
         self.chain_links = [j.child for j in movable]
         self._revolute = np.array([t != 'prismatic' for t in self.joint_types])
         names = [f'{j}/{f}' for j in self.joint_names for f in ERROR_FIELDS]
