@@ -1,0 +1,252 @@
+"""Tests for the sphere and ArUco detectors on rendered images."""
+
+import cv2
+import numpy as np
+import pytest
+from scipy.special import erfc
+
+from armcal_ros.frontend.detectors import (
+    ArucoDetector, diagonal_intersection, make_detector, SphereDetector)
+
+SHAPE = (480, 640)
+
+
+def render_sphere(centre, radius, amp=180.0, bg=20.0, edge=0.8, shape=SHAPE, image=None):
+    """
+    Add a Gaussian-edged disc to a float image (or a flat background).
+
+    I(r) = amp * 0.5 erfc((r - radius) / (sqrt(2) edge)): a uniform disc of ``radius`` blurred by
+    a Gaussian of sigma ``edge``, sampled at pixel centres (integer coordinates).
+    """
+    img = np.full(shape, bg, float) if image is None else image
+    ys, xs = np.mgrid[0:shape[0], 0:shape[1]]
+    r = np.hypot(xs - centre[0], ys - centre[1])
+    img += amp * 0.5 * erfc((r - radius) / (np.sqrt(2.0) * edge))
+    return img
+
+
+def quantise(img, rng=None, noise=3.0, dtype=np.uint8, scale=1.0):
+    img = img * scale
+    if rng is not None:
+        img = img + rng.normal(0.0, noise * scale, img.shape)
+    return np.clip(np.round(img), 0, np.iinfo(dtype).max).astype(dtype)
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(42)
+
+
+def test_sphere_centroid_accuracy_on_50_renders(rng):
+    errors = []
+    for _ in range(50):
+        centre = rng.uniform([40, 40], [600, 440])
+        radius = rng.uniform(3.0, 8.0)
+        img = quantise(render_sphere(centre, radius, amp=rng.uniform(80, 230)), rng, noise=3.0)
+        dets = SphereDetector().detect(img)
+        assert len(dets) == 1
+        assert dets[0].id == 0
+        assert dets[0].radius_px == pytest.approx(radius, rel=0.35)
+        errors.append(np.linalg.norm(dets[0].uv - centre))
+    assert np.mean(errors) < 0.15
+    assert np.max(errors) < 0.3
+
+
+@pytest.mark.parametrize('dtype,value', [(np.uint8, 0), (np.uint8, 255), (np.uint16, 0),
+                                         (np.uint16, 65535), (np.uint8, 128)])
+def test_flat_frames_give_nothing(dtype, value):
+    det = SphereDetector()
+    assert det.detect(np.full(SHAPE, value, dtype)) == []
+    assert det.detect(np.full(SHAPE + (3,), value, dtype)) == []
+
+
+def test_noise_only_frame_gives_nothing(rng):
+    assert SphereDetector().detect(quantise(np.full(SHAPE, 40.0), rng, noise=5.0)) == []
+
+
+def test_hot_pixel_and_speck_are_rejected(rng):
+    img = quantise(np.full(SHAPE, 20.0), rng)
+    img[100, 200] = 255
+    img[300:302, 400:402] = 255
+    det = SphereDetector()
+    assert det.detect(img) == []
+    assert det.last_status in ('rejected', 'none')
+    # ... and do not hide a real sphere, even though they are brighter
+    img = quantise(render_sphere((320.3, 240.6), 5.0, amp=120), rng)
+    img[100, 200] = 255
+    img[300:302, 400:402] = 255
+    dets = SphereDetector().detect(img)
+    assert len(dets) == 1 and np.linalg.norm(dets[0].uv - (320.3, 240.6)) < 0.2
+
+
+def _glint(img, start, end, width=2, value=230):
+    cv2.line(img, start, end, value, width, cv2.LINE_AA)
+    return img
+
+
+def test_elongated_glint_is_rejected(rng):
+    img = quantise(np.full(SHAPE, 20.0), rng)
+    assert SphereDetector().detect(_glint(img, (100, 100), (160, 130))) == []
+    img = quantise(render_sphere((420.7, 300.2), 6.0), rng)
+    dets = SphereDetector().detect(_glint(img, (100, 100), (160, 130)))
+    assert len(dets) == 1 and np.linalg.norm(dets[0].uv - (420.7, 300.2)) < 0.2
+
+
+def test_second_smaller_dimmer_blob_is_ignored(rng):
+    img = render_sphere((200.4, 150.8), 6.0, amp=200)
+    img = quantise(render_sphere((450.0, 350.0), 3.0, amp=90, bg=0.0, image=img), rng)
+    dets = SphereDetector().detect(img)
+    assert len(dets) == 1 and np.linalg.norm(dets[0].uv - (200.4, 150.8)) < 0.2
+    assert 0.5 < dets[0].quality <= 1.0
+
+
+def test_two_equal_spheres_are_ambiguous_unless_tracked(rng):
+    both = render_sphere((150.0, 150.0), 6.0)
+    both = quantise(render_sphere((500.0, 350.0), 6.0, bg=0.0, image=both), rng)
+    det = SphereDetector()
+    assert det.detect(both) == []
+    assert det.last_status == 'ambiguous'
+    # Tracking: having seen the ball alone at (500, 350), the highlight elsewhere is ignored.
+    alone = quantise(render_sphere((500.0, 350.0), 6.0), rng)
+    assert len(det.detect(alone)) == 1
+    dets = det.detect(both)
+    assert len(dets) == 1 and np.linalg.norm(dets[0].uv - (500.0, 350.0)) < 0.2
+    assert det.last_status == 'tracked'
+
+
+def test_tracking_falls_back_to_the_whole_image(rng):
+    det = SphereDetector(search_window_px=30)
+    det.detect(quantise(render_sphere((100.0, 100.0), 5.0), rng))
+    dets = det.detect(quantise(render_sphere((540.3, 400.1), 5.0), rng))
+    assert len(dets) == 1 and np.linalg.norm(dets[0].uv - (540.3, 400.1)) < 0.2
+    assert det.last_status == 'ok'
+    det.reset()
+    assert det.last_uv is None
+
+
+def test_half_occluded_and_border_spheres_are_rejected(rng):
+    img = render_sphere((300.0, 200.0), 8.0)
+    img[:, 300:] = 20.0                       # right half hidden
+    assert SphereDetector().detect(quantise(img, rng)) == []
+    img = quantise(render_sphere((1.5, 200.0), 6.0), rng)
+    assert SphereDetector().detect(img) == []
+
+
+def test_sixteen_bit_and_twelve_bit_in_sixteen(rng):
+    centre = (222.2, 333.3)
+    base = render_sphere(centre, 5.0)
+    for scale in (257.0, 16.0):              # full 16-bit range, then 12-bit data
+        img = quantise(base, rng, dtype=np.uint16, scale=scale)
+        dets = SphereDetector().detect(img)
+        assert len(dets) == 1 and np.linalg.norm(dets[0].uv - centre) < 0.15
+
+
+def test_colour_led_on_bgr_image(rng):
+    centre = (123.4, 234.5)
+    red = quantise(render_sphere(centre, 4.0, amp=220), rng)
+    bgr = np.dstack([quantise(np.full(SHAPE, 20.0), rng),
+                     quantise(np.full(SHAPE, 25.0), rng), red])
+    dets = SphereDetector().detect(bgr)
+    assert len(dets) == 1 and np.linalg.norm(dets[0].uv - centre) < 0.15
+
+
+def test_vignetted_background(rng):
+    ys, xs = np.mgrid[0:SHAPE[0], 0:SHAPE[1]]
+    vignette = 60.0 * (1 - ((xs - 320) ** 2 + (ys - 240) ** 2) / (400.0 ** 2))
+    centre = (580.6, 60.3)
+    img = quantise(render_sphere(centre, 5.0, amp=150, bg=0.0, image=vignette.copy()), rng)
+    dets = SphereDetector().detect(img)
+    assert len(dets) == 1 and np.linalg.norm(dets[0].uv - centre) < 0.15
+
+
+def test_size_limits(rng):
+    img = quantise(render_sphere((320.0, 240.0), 20.0), rng)
+    assert SphereDetector(max_radius_px=10).detect(img) == []
+    assert len(SphereDetector(max_radius_px=30).detect(img)) == 1
+
+
+@pytest.mark.parametrize('params,name', [
+    (dict(min_radius_px=-1), 'min_radius_px'), (dict(max_radius_px=1.0), 'max_radius_px'),
+    (dict(min_roundness=1.5), 'min_roundness'), (dict(ambiguity_ratio='x'), 'ambiguity_ratio'),
+    (dict(blur_sigma_px=0.1), 'blur_sigma_px'), (dict(max_candidates=1), 'max_candidates'),
+    (dict(bogus=3), 'bogus')])
+def test_make_detector_validates_parameters(params, name):
+    with pytest.raises(ValueError, match=name):
+        make_detector('sphere', **params)
+
+
+def test_make_detector_types():
+    assert isinstance(make_detector('sphere', min_radius_px=2), SphereDetector)
+    assert isinstance(make_detector('ArUco', dictionary='4x4_50', marker_id=3), ArucoDetector)
+    with pytest.raises(ValueError, match='marker_type'):
+        make_detector('hexagon')
+    with pytest.raises(ValueError, match='dictionary'):
+        make_detector('aruco', dictionary='DICT_NOPE')
+    with pytest.raises(ValueError, match='marker_id'):
+        make_detector('aruco', dictionary='DICT_4X4_50', marker_id=50)
+
+
+def test_diagonal_intersection_is_the_projective_centre():
+    # A strongly foreshortened square: the corner mean is off, the diagonals are not.
+    H = np.array([[1.0, 0.2, 100.0], [0.1, 0.9, 80.0], [0.002, 0.001, 1.0]])
+    square = np.array([[0, 0], [100, 0], [100, 100], [0, 100]], float)
+    quad = cv2.perspectiveTransform(square[None], H)[0]
+    centre = cv2.perspectiveTransform(np.array([[[50.0, 50.0]]]), H)[0, 0]
+    np.testing.assert_allclose(diagonal_intersection(quad), centre, atol=1e-9)
+    assert np.linalg.norm(quad.mean(axis=0) - centre) > 1.0
+    assert diagonal_intersection(np.zeros((4, 2))) is None
+
+
+def _render_tag(rng, tag_id, H_low, dictionary=cv2.aruco.DICT_4X4_50, side=60, ss=4,
+                noise=2.0):
+    """Render tag ``tag_id`` (with a white quiet zone) through homography ``H_low``."""
+    d = cv2.aruco.getPredefinedDictionary(dictionary)
+    tag = cv2.aruco.generateImageMarker(d, tag_id, side * ss, borderBits=1)
+    pad = side * ss // 3
+    src = cv2.copyMakeBorder(tag, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=255)
+    # Pixel-centre convention: src pixel (i, j) centre at (j, i); the tag spans
+    # [pad - 0.5, pad + side*ss - 0.5] so its centre is pad + (side*ss - 1) / 2.
+    c_src = pad + (side * ss - 1) / 2.0
+    # Work at ss x resolution then area-downsample: low-res pixel x <-> high-res ss x + (ss-1)/2.
+    S = np.array([[ss, 0, (ss - 1) / 2.0], [0, ss, (ss - 1) / 2.0], [0, 0, 1]])
+    Sinv = np.linalg.inv(S)
+    to_src = np.diag([ss, ss, 1.0])            # tag coords in "low-res tag pixels" -> src
+    H_hi = S @ H_low @ np.linalg.inv(to_src)
+    hi = cv2.warpPerspective(src, H_hi, (SHAPE[1] * ss, SHAPE[0] * ss), flags=cv2.INTER_LINEAR,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=90)
+    low = cv2.resize(hi, (SHAPE[1], SHAPE[0]), interpolation=cv2.INTER_AREA).astype(float)
+    img = np.clip(np.round(0.2 * 255 + 0.6 * low + rng.normal(0, noise, low.shape)), 0, 255)
+    centre_hi = H_hi @ np.array([c_src, c_src, 1.0])
+    centre = Sinv @ centre_hi
+    return img.astype(np.uint8), centre[:2] / centre[2]
+
+
+@pytest.mark.parametrize('tilt', [0.0, 0.4, 0.8])
+def test_aruco_centre_on_warped_tag(rng, tilt):
+    errors = []
+    for k in range(5):
+        # Homography of a plane tilted about the vertical axis, seen by f = 600 px.
+        # An 8 cm tag at 0.8 m: about 60 px across when facing the camera.
+        f, z, side, tag_m = 600.0, 0.8, 60, 0.08
+        R = cv2.Rodrigues(np.array([0.1 * k - 0.2, tilt, 0.05 * k]))[0]
+        scale = tag_m / side                   # metres per "tag pixel"
+        K = np.array([[f, 0, 300.0 + 10 * k], [0, f, 240.0], [0, 0, 1]])
+        A = np.column_stack([R[:, 0] * scale, R[:, 1] * scale,
+                             np.array([0.0, 0.0, z]) - R @ np.array([tag_m / 2, tag_m / 2, 0])])
+        H = K @ A
+        H /= H[2, 2]
+        img, centre = _render_tag(rng, 7, H, side=side)
+        dets = ArucoDetector('DICT_4X4_50').detect(img)
+        assert [d.id for d in dets] == [7]
+        errors.append(np.linalg.norm(dets[0].uv - centre))
+        assert ArucoDetector('DICT_4X4_50', marker_id=3).detect(img) == []
+    assert max(errors) < 0.3
+
+
+def test_aruco_on_16_bit_and_colour(rng):
+    H = np.array([[1.0, 0.0, 200.0], [0.0, 1.0, 150.0], [0.0, 0.0, 1.0]])
+    img, centre = _render_tag(rng, 2, H)
+    for image in (img.astype(np.uint16) * 257, cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)):
+        dets = ArucoDetector('DICT_4X4_50').detect(image)
+        assert len(dets) == 1 and np.linalg.norm(dets[0].uv - centre) < 0.3
+    assert ArucoDetector('DICT_4X4_50').detect(np.zeros(SHAPE, np.uint8)) == []
