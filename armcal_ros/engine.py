@@ -1,0 +1,414 @@
+"""
+The ROS-free online calibrator shared by the node and the offline CLI.
+
+It accumulates samples in a :class:`~armcal_ros.frontend.store.SampleStore`, decides when a solve
+is due, runs it (synchronously, or in a background worker thread so that the caller - a ROS
+executor - never stalls), and hands out the latest accepted :class:`Calibration`.
+
+When a solve is due: at least ``min_samples`` samples, at least ``solve_period_s`` since the last
+solve started, and at least ``min_new_samples`` samples added or changed since then (no point
+re-solving the same data).  The first solve starts from scratch (DLT, fixed, model); later ones
+are warm-started from the current calibration.
+
+A new result replaces the current calibration only if it is not clearly worse: it must have
+converged, and no camera's inlier reprojection RMS may exceed ``max(reject_rms_ratio x previous,
+previous + reject_rms_margin_px)``, nor its inlier fraction drop by more than
+``reject_inlier_drop``.  A burst of bad detections therefore cannot overwrite a good calibration;
+the rejection is reported with its reason.
+"""
+
+import json
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Dict, List, Optional
+
+import numpy as np
+
+from armcal_ros.core.adjustment import Observations, SolverSettings
+from armcal_ros.core.calibration import calibrate, CalibrationResult, CameraSpec
+from armcal_ros.core.camera import Camera, skew
+from armcal_ros.core.priors import PriorSettings
+from armcal_ros.frontend.store import SampleStore
+from armcal_ros.io.calib_files import atomic_write_text, read_cameras, write_cameras
+
+CALIBRATION_FILE = 'calibration.json'
+
+
+@dataclass
+class EngineSettings:
+    """What the engine calibrates and when it re-solves."""
+
+    camera_names: List[str]
+    prior: PriorSettings = field(default_factory=PriorSettings)
+    solver: SolverSettings = field(default_factory=SolverSettings)
+    min_samples: int = 20
+    solve_period_s: float = 10.0
+    min_new_samples: int = 5
+    reject_rms_ratio: float = 1.5
+    reject_rms_margin_px: float = 0.3
+    reject_inlier_drop: float = 0.1
+    base_frame: str = 'base_link'
+
+    def validate(self):
+        """Raise ValueError naming the first bad setting; return self."""
+        if not self.camera_names:
+            raise ValueError('camera_names must name at least one camera')
+        if len(set(self.camera_names)) != len(self.camera_names):
+            raise ValueError(f'camera_names has duplicates: {self.camera_names}')
+        if self.min_samples < 1:
+            raise ValueError(f'min_samples must be >= 1, got {self.min_samples}')
+        if not self.solve_period_s >= 0:
+            raise ValueError(f'solve_period must be >= 0 s, got {self.solve_period_s}')
+        if self.min_new_samples < 0:
+            raise ValueError(f'min_new_samples must be >= 0, got {self.min_new_samples}')
+        self.prior.validate()
+        self.solver.validate()
+        return self
+
+
+@dataclass
+class CameraCalibration:
+    """One camera's accepted calibration and its quality figures."""
+
+    camera: Camera
+    std: Dict[str, float]
+    pose_covariance: np.ndarray          # 6x6 over (x, y, z, rx, ry, rz) of T_base_camera
+    rms_px: float
+    n_observations: int
+    n_inliers: int
+
+
+@dataclass
+class Calibration:
+    """A calibration the engine accepted: cameras, quality, and how it was obtained."""
+
+    cameras: Dict[str, CameraCalibration]
+    model: str
+    cost: float
+    n_samples: int
+    solve_time_s: float
+    solved_at: float                     # wall-clock seconds since the epoch
+    status: str
+    message: str
+    hyperparameters: Dict[str, float] = field(default_factory=dict)
+
+    def summary(self):
+        """Return a JSON-friendly dict (no numpy types)."""
+        cams = {}
+        for name, c in self.cameras.items():
+            t, q = c.camera.pose_in_world()
+            cams[name] = dict(
+                width=c.camera.width, height=c.camera.height, fx=c.camera.fx, fy=c.camera.fy,
+                cx=c.camera.cx, cy=c.camera.cy, dist=[float(v) for v in c.camera.dist],
+                translation=[float(v) for v in t], rotation=[float(v) for v in q],
+                std={k: float(v) for k, v in c.std.items()},
+                pose_covariance=[float(v) for v in np.asarray(c.pose_covariance).ravel()],
+                rms_px=float(c.rms_px), n_observations=int(c.n_observations),
+                n_inliers=int(c.n_inliers))
+        return dict(model=self.model, cost=float(self.cost), n_samples=int(self.n_samples),
+                    solve_time_s=float(self.solve_time_s), solved_at=float(self.solved_at),
+                    status=self.status, message=self.message,
+                    hyperparameters=dict(self.hyperparameters), cameras=cams)
+
+
+@dataclass
+class SolveOutcome:
+    """What one solve did: ``accepted`` says whether it became the current calibration."""
+
+    accepted: bool
+    reason: str
+    result: Optional[CalibrationResult]
+    calibration: Optional[Calibration]
+    n_samples: int
+    time_s: float
+
+
+def pose_covariance(cam: Camera, cov_pose):
+    """
+    Covariance of T_base_camera over (x, y, z, rx, ry, rz) from the solver's pose covariance.
+
+    The solver perturbs world-to-camera as R <- exp([w]x) R, t <- t + dt.  The optical centre
+    C = -R^T t moves by dC = -R^T [t]x w - R^T dt, and the camera's orientation in the base frame,
+    R^T, by a base-frame rotation of -R^T w (ROS PoseWithCovariance convention: rotations about
+    the fixed parent axes).
+    """
+    R, t = cam.rotation, cam.translation
+    J = np.zeros((6, 6))
+    J[:3, :3] = -R.T @ skew(t)
+    J[:3, 3:] = -R.T
+    J[3:, :3] = -R.T
+    return J @ np.asarray(cov_pose) @ J.T
+
+
+def calibration_from_result(result: CalibrationResult, n_samples, hyper=None) -> Calibration:
+    """Turn a solver result into a :class:`Calibration` (pose covariances included)."""
+    adj = result.adjustment
+    cams = {}
+    names = adj.parameter_names
+    for name, est in adj.cameras.items():
+        idx = [names.index(f'{name}/{p}') for p in ('wx', 'wy', 'wz', 'tx', 'ty', 'tz')]
+        cov = adj.covariance[np.ix_(idx, idx)]
+        cams[name] = CameraCalibration(est.camera.copy(), dict(est.std),
+                                       pose_covariance(est.camera, cov), est.rms_px,
+                                       est.n_observations, est.n_inliers)
+    return Calibration(cams, adj.model, adj.cost, n_samples, result.time_s, time.time(),
+                       result.status, result.message, dict(hyper or {}))
+
+
+class CalibrationEngine:
+    """
+    Accumulate samples and keep an up-to-date calibration.
+
+    Thread safety: :meth:`add_sample`, :meth:`maybe_solve_async`, :meth:`current` and
+    :meth:`reset` may be called from any thread; one solve runs at a time.
+    """
+
+    def __init__(self, settings: EngineSettings, store: Optional[SampleStore] = None,
+                 clock: Callable[[], float] = time.monotonic):
+        self.settings = settings.validate()
+        self.store = store if store is not None else SampleStore()
+        self.clock = clock
+        self.image_sizes: Dict[str, tuple] = {}
+        self._lock = threading.RLock()
+        self._current: Optional[Calibration] = None
+        self._last_solve_start = -np.inf
+        self._revision_at_last_solve = -1
+        self._samples_at_last_solve = 0
+        self._worker: Optional[threading.Thread] = None
+        self._listeners: List[Callable[[SolveOutcome], None]] = []
+        self.last_outcome: Optional[SolveOutcome] = None
+        self.n_solves = 0
+        self.n_rejected = 0
+
+    # -- inputs --------------------------------------------------------------------------
+    def set_image_size(self, camera, width, height):
+        """Record a camera's image size (from its images or its CameraInfo)."""
+        if camera not in self.settings.camera_names:
+            raise ValueError(f'camera {camera!r} is not in camera_names '
+                             f'{self.settings.camera_names}')
+        with self._lock:
+            self.image_sizes[camera] = (int(width), int(height))
+
+    def add_sample(self, sample):
+        """Add a sample to the store; return the store's AddResult."""
+        with self._lock:
+            return self.store.add(sample)
+
+    def reset(self):
+        """Forget every sample (the current calibration is kept until a new one replaces it)."""
+        with self._lock:
+            self.store.clear()
+            self._revision_at_last_solve = -1
+            self._samples_at_last_solve = 0
+
+    def on_result(self, callback: Callable[[SolveOutcome], None]):
+        """Register ``callback(outcome)``, called from the solving thread after every solve."""
+        self._listeners.append(callback)
+
+    @property
+    def current(self) -> Optional[Calibration]:
+        """Return the latest accepted calibration (or None)."""
+        with self._lock:
+            return self._current
+
+    @property
+    def solving(self):
+        """Return True while a background solve runs."""
+        return self._worker is not None and self._worker.is_alive()
+
+    # -- deciding and solving ------------------------------------------------------------
+    def solve_due(self, now=None):
+        """Return (due, reason)."""
+        now = self.clock() if now is None else now
+        with self._lock:
+            n = len(self.store)
+            if n < self.settings.min_samples:
+                return False, f'{n} of {self.settings.min_samples} samples'
+            if now - self._last_solve_start < self.settings.solve_period_s:
+                return False, 'solve_period not elapsed'
+            if self.store.revision == self._revision_at_last_solve:
+                return False, 'no new samples'
+            new = abs(n - self._samples_at_last_solve)
+            if self._current is not None and new < self.settings.min_new_samples and \
+                    self.store.revision - self._revision_at_last_solve < \
+                    self.settings.min_new_samples:
+                return False, f'{new} new samples (min_new_samples {self.settings.min_new_samples})'
+            return True, 'due'
+
+    def _problem(self):
+        names = list(self.settings.camera_names)
+        arrays = self.store.arrays(camera_names=names)
+        specs, missing = [], []
+        for name in names:
+            if name not in self.image_sizes:
+                missing.append(name)
+            w, h = self.image_sizes.get(name, (0, 0))
+            specs.append(CameraSpec(name, w, h))
+        return arrays, specs, missing
+
+    def solve(self, force=False) -> SolveOutcome:
+        """Solve now on a snapshot of the samples (synchronously) and maybe accept the result."""
+        t0 = time.perf_counter()
+        with self._lock:
+            self._last_solve_start = self.clock()
+            self._revision_at_last_solve = self.store.revision
+            arrays, specs, missing = self._problem()
+            n = len(arrays.points)
+            self._samples_at_last_solve = len(self.store)
+            initial = ({k: c.camera for k, c in self._current.cameras.items()}
+                       if self._current is not None else None)
+        keep = [j for j, s in enumerate(specs) if s.name not in missing]
+        if not keep or n == 0:
+            reason = ('no samples' if n == 0 else
+                      f'image size unknown for {missing}: no image received yet')
+            return self._finish(SolveOutcome(False, reason, None, None, n,
+                                             time.perf_counter() - t0))
+        remap = -np.ones(len(specs), np.int64)
+        remap[keep] = np.arange(len(keep))
+        sel = remap[arrays.camera_index] >= 0
+        obs = Observations(remap[arrays.camera_index[sel]], arrays.point_index[sel],
+                           arrays.uv[sel])
+        result = calibrate([specs[j] for j in keep], arrays.points, obs, self.settings.prior,
+                           self.settings.solver, initial=initial)
+        if (result.adjustment is None or not np.all(np.isfinite(result.adjustment.covariance))) \
+                and initial is not None:
+            # A warm start that failed may have been poisoned: try once from scratch.
+            result = calibrate([specs[j] for j in keep], arrays.points, obs,
+                               self.settings.prior, self.settings.solver)
+        outcome = self._judge(result, n, time.perf_counter() - t0)
+        return self._finish(outcome)
+
+    def _judge(self, result, n, elapsed):
+        if result.adjustment is None or not result.success:
+            return SolveOutcome(False, f'solve failed: {result.message}', result, None, n, elapsed)
+        hyper = dict(point_sigma=self.settings.prior.point_sigma,
+                     bias_sigma=self.settings.prior.bias_sigma,
+                     coherence_length=self.settings.prior.coherence_length,
+                     pixel_sigma=self.settings.solver.pixel_sigma)
+        new = calibration_from_result(result, n, hyper)
+        with self._lock:
+            old = self._current
+        if old is not None:
+            s = self.settings
+            for name, c in new.cameras.items():
+                if name not in old.cameras:
+                    continue
+                o = old.cameras[name]
+                limit = max(s.reject_rms_ratio * o.rms_px, o.rms_px + s.reject_rms_margin_px)
+                if c.rms_px > limit:
+                    return SolveOutcome(False, f'rejected: {name} reprojection RMS '
+                                        f'{c.rms_px:.2f} px > {limit:.2f} px allowed after '
+                                        f'{o.rms_px:.2f} px', result, new, n, elapsed)
+                fo = o.n_inliers / max(o.n_observations, 1)
+                fn = c.n_inliers / max(c.n_observations, 1)
+                if fn < fo - s.reject_inlier_drop:
+                    return SolveOutcome(False, f'rejected: {name} inlier fraction fell from '
+                                        f'{fo:.2f} to {fn:.2f}', result, new, n, elapsed)
+            dropped = [k for k in old.cameras if k not in new.cameras]
+            if dropped:
+                for k in dropped:
+                    new.cameras[k] = old.cameras[k]
+        return SolveOutcome(True, result.message, result, new, n, elapsed)
+
+    def _finish(self, outcome: SolveOutcome):
+        with self._lock:
+            self.n_solves += 1
+            if outcome.accepted:
+                self._current = outcome.calibration
+            elif outcome.result is not None:
+                self.n_rejected += 1
+            self.last_outcome = outcome
+        for cb in list(self._listeners):
+            cb(outcome)
+        return outcome
+
+    def maybe_solve_async(self, force=False):
+        """Start a background solve if one is due (or ``force``); return True if started."""
+        with self._lock:
+            if self.solving:
+                return False
+            if not force and not self.solve_due()[0]:
+                return False
+            self._worker = threading.Thread(target=self.solve, name='armcal-solver', daemon=True)
+            self._worker.start()
+            return True
+
+    def wait(self, timeout=None):
+        """Wait for a running background solve; return True if none is running afterwards."""
+        w = self._worker
+        if w is not None:
+            w.join(timeout)
+        return not self.solving
+
+    # -- persistence ---------------------------------------------------------------------
+    def save(self, directory):
+        """
+        Write samples and the current calibration to ``directory``.
+
+        Files: samples (the store's format), ``<camera>.yaml`` and ``extrinsics.yaml`` for the
+        calibrated cameras, and ``calibration.json`` with the quality figures.  Each file is
+        written atomically.  Returns the list of files written.
+        """
+        os.makedirs(directory, exist_ok=True)
+        with self._lock:
+            written = [self.store.save(directory)]
+            cal = self._current
+        if cal is not None:
+            cams = [c.camera for c in cal.cameras.values()]
+            write_cameras(directory, cams, self.settings.base_frame)
+            written += [os.path.join(directory, f'{c.name}.yaml') for c in cams]
+            written.append(os.path.join(directory, 'extrinsics.yaml'))
+            path = os.path.join(directory, CALIBRATION_FILE)
+            atomic_write_text(path, json.dumps(cal.summary(), indent=1))
+            written.append(path)
+        return [str(w) for w in written if w]
+
+    def load(self, directory):
+        """
+        Resume from ``directory``: samples and the last calibration, when present.
+
+        Returns a message saying what was restored.  Files that do not exist are not an error
+        (a first start); files that exist but cannot be read raise ValueError naming them.
+        """
+        said = []
+        store_file = os.path.join(directory, 'samples.npz')
+        if os.path.exists(store_file):
+            store = SampleStore.load(directory, joint_names=self.store.joint_names,
+                                     max_samples=self.store.max_samples,
+                                     min_sample_spacing=self.store.min_sample_spacing)
+            with self._lock:
+                self.store = store
+            said.append(f'{len(store)} samples')
+        cal_file = os.path.join(directory, CALIBRATION_FILE)
+        if os.path.exists(cal_file):
+            cal = load_calibration(directory)
+            with self._lock:
+                self._current = cal
+                for name, c in cal.cameras.items():
+                    if name in self.settings.camera_names:
+                        self.image_sizes.setdefault(name, (c.camera.width, c.camera.height))
+            said.append(f'calibration of {sorted(cal.cameras)} ({cal.model}, '
+                        f'{cal.n_samples} samples)')
+        return 'restored ' + ' and '.join(said) if said else 'nothing to restore'
+
+
+def load_calibration(directory) -> Calibration:
+    """Read a calibration written by :meth:`CalibrationEngine.save`."""
+    path = os.path.join(directory, CALIBRATION_FILE)
+    try:
+        with open(path) as f:
+            doc = json.load(f)
+        _, cams = read_cameras(directory, names=list(doc['cameras']))
+    except (OSError, ValueError, KeyError) as exc:
+        raise ValueError(f'{path}: cannot restore the calibration: {exc}') from exc
+    out = {}
+    for cam in cams:
+        d = doc['cameras'][cam.name]
+        out[cam.name] = CameraCalibration(
+            cam, dict(d['std']), np.asarray(d['pose_covariance'], float).reshape(6, 6),
+            float(d['rms_px']), int(d['n_observations']), int(d['n_inliers']))
+    return Calibration(out, doc['model'], doc['cost'], doc['n_samples'], doc['solve_time_s'],
+                       doc['solved_at'], doc['status'], doc['message'],
+                       doc.get('hyperparameters', {}))
