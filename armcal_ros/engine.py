@@ -234,7 +234,8 @@ class CalibrationEngine:
             if self._current is not None and new < self.settings.min_new_samples and \
                     self.store.revision - self._revision_at_last_solve < \
                     self.settings.min_new_samples:
-                return False, f'{new} new samples (min_new_samples {self.settings.min_new_samples})'
+                return False, (f'{new} new samples '
+                               f'(min_new_samples {self.settings.min_new_samples})')
             return True, 'due'
 
     def _problem(self):
