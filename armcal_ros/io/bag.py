@@ -166,11 +166,11 @@ class BagWriter:
                           efforts=None, log_ns=None, frame_id=''):
         """Write a sensor_msgs/JointState (velocity and effort empty unless given)."""
         names = [str(n) for n in names]
-        pos = np.asarray(positions, dtype=np.float64).reshape(-1)
+        pos = np.ascontiguousarray(positions, dtype=np.float64).reshape(-1)
         if pos.size != len(names):
             raise ValueError(f'positions has {pos.size} values for {len(names)} names')
-        vel = np.zeros(0) if velocities is None else np.asarray(velocities, np.float64)
-        eff = np.zeros(0) if efforts is None else np.asarray(efforts, np.float64)
+        vel = np.zeros(0) if velocities is None else np.ascontiguousarray(velocities, np.float64)
+        eff = np.zeros(0) if efforts is None else np.ascontiguousarray(efforts, np.float64)
         for label, arr in (('velocities', vel), ('efforts', eff)):
             if arr.size not in (0, len(names)):
                 raise ValueError(f'{label} must be empty or have {len(names)} values')

@@ -1,0 +1,92 @@
+"""
+The ``armcal`` command (DESIGN.md section 6).
+
+Each subcommand is a pair of functions registered in :data:`SUBCOMMANDS`: one adds its
+arguments to an argparse sub-parser, the other runs it and returns the exit status.  Errors a
+user can fix end the command with a one-line reason on stderr and a non-zero status.
+"""
+
+import argparse
+import sys
+
+
+# ---- simulate ---------------------------------------------------------------------------
+
+def _add_simulate(p):
+    from armcal_ros.sim.cell import SCENARIOS
+    p.add_argument('--output', required=True, metavar='BAG',
+                   help='bag directory to create (must not exist); ground truth goes to '
+                        'BAG/ground_truth/')
+    p.add_argument('--scenario', default='geometric', choices=sorted(SCENARIOS))
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--duration', type=float, default=60.0, help='seconds of teleoperation')
+    p.add_argument('--storage', default='mcap', choices=['mcap', 'sqlite3'])
+    p.add_argument('--compressed', default=None, choices=['png', 'jpeg'],
+                   help='publish sensor_msgs/CompressedImage on /<cam>/image_raw/compressed')
+    p.add_argument('--encoding', default='mono8', choices=['mono8', 'rgb8', 'bgr8'])
+    p.add_argument('--no-zstd', action='store_true', help='no zstd chunk compression (mcap)')
+    p.add_argument('--quiet', action='store_true')
+
+
+def _run_simulate(args):
+    import os
+
+    from armcal_ros.sim.cell import simulate_cell
+    from armcal_ros.sim.output import write_sim_bag
+    if os.path.exists(args.output):
+        raise ValueError(f'--output {args.output} exists already; choose a new bag directory')
+    if args.duration <= 2.0:
+        raise ValueError(f'--duration must be > 2 s, got {args.duration}')
+    result = simulate_cell(args.scenario, args.seed, args.duration)
+
+    def progress(i, n):
+        if not args.quiet:
+            print(f'\r  writing {i}/{n} messages', end='', file=sys.stderr, flush=True)
+
+    counts = write_sim_bag(result, args.output, storage=args.storage,
+                           compressed=args.compressed, encoding=args.encoding,
+                           compress=not args.no_zstd, progress=progress)
+    if not args.quiet:
+        print('', file=sys.stderr)
+        size = sum(os.path.getsize(os.path.join(d, f))
+                   for d, _, fs in os.walk(args.output) for f in fs)
+        print(f'wrote {args.output}: scenario {args.scenario}, seed {args.seed}, '
+              f'{len(result.dwells)} dwells, '
+              + ', '.join(f'{t} {n}' for t, n in counts.items())
+              + f'; {size / 1e6:.1f} MB')
+    return 0
+
+
+#: name -> (help, add_arguments(parser), run(args) -> exit status).
+#: Other subcommands (calibrate, replay, report, demo) register here the same way.
+SUBCOMMANDS = {
+    'simulate': ('simulate a calibration cell into a rosbag2 bag with ground truth',
+                 _add_simulate, _run_simulate),
+}
+
+
+def build_parser():
+    """Return the argparse parser with every registered subcommand."""
+    parser = argparse.ArgumentParser(prog='armcal', description='Online camera calibration '
+                                     'with a robot arm as the target.')
+    sub = parser.add_subparsers(dest='command', metavar='COMMAND')
+    sub.required = True
+    for name, (help_text, add, _) in SUBCOMMANDS.items():
+        add(sub.add_parser(name, help=help_text, description=help_text))
+    return parser
+
+
+def main(argv=None):
+    """Entry point of the ``armcal`` console script; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _, _, run = SUBCOMMANDS[args.command]
+    try:
+        return int(run(args) or 0)
+    except (ValueError, FileNotFoundError, RuntimeError) as err:
+        print(f'armcal {args.command}: {err}', file=sys.stderr)
+        return 2
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,487 @@
+"""
+A simulated calibration cell with its ground truth.
+
+A PUMA-class arm carries a sphere marker, three cameras watch it, an operator jogs it about.
+
+:func:`simulate_cell` is ROS-free: it returns a :class:`SimResult` with the joint-state stream,
+the camera frame schedule with the true marker projection of every frame, the dwell poses with
+true and nominal marker positions, and a renderer for the images.
+:mod:`armcal_ros.sim.output` writes it to a rosbag2 bag with ground truth.
+
+Scenarios (:data:`SCENARIOS`; magnitudes in :mod:`armcal_ros.sim.true_robot`):
+
+- ``geometric``: joint offsets, joint-origin translations and rotations, marker mount error.
+- ``nongeometric``: geometric plus periodic joint-angle errors and gravity compliance.
+- ``gp-prior``: the nominal robot is exact; the true marker is the nominal one plus a bias
+  field drawn from the paper's correlated prior (s_b = 1 mm, L = 0.3 m, squared exponential).
+- ``mixed``: geometric plus a local field from that prior (s_b = 0.3 mm, L = 0.15 m).
+
+Timing: JointState at 200 Hz on a regular control clock, names in a shuffled order plus an extra
+gripper joint (the calibrator must map by name).  Each camera has its own 15 Hz clock (a
+random phase and a clock-rate error of up to 100 ppm) and stamps each frame at the middle of
+its exposure plus Gaussian jitter (2 ms); the bag receive time adds a transfer latency of
+8-20 ms, so bag order differs from stamp order as in a real recording.
+
+Occlusion, two kinds: geometric, by the arm's own links, modelled as capsules of radius
+``link_radius`` between consecutive link-frame origins (the line of sight from the camera
+centre to within ``occlusion_clearance`` of the marker must clear them); and random spans
+(an operator's hand, a cable) per camera, a Poisson process of ``occlusion_rate`` per second
+lasting 0.3-1.5 s.  Targets are chosen so that the marker is inside every image (with a
+margin) and unoccluded by the links in every camera, except for a fraction
+``partial_view_probability`` of them where two cameras suffice.  During moves the marker
+may leave an image or pass behind the arm.
+"""
+
+import os
+import sys
+from dataclasses import asdict, dataclass, field
+from typing import List, Optional
+
+import numpy as np
+
+from armcal_ros.sim.bias_field import FourierBiasField
+from armcal_ros.sim.cameras import ring_of_cameras
+from armcal_ros.sim.render import expose, glint_patches, marker_signal, SensorModel
+from armcal_ros.sim.trajectory import teleop_trajectory, Trajectory
+from armcal_ros.sim.true_robot import (
+    draw_compliance, draw_geometric_errors, draw_periodic, TrueRobot,
+)
+
+#: name -> (geometric, non-geometric, bias field (sigma m, coherence m) or None)
+SCENARIOS = {
+    'geometric': (True, False, None),
+    'nongeometric': (True, True, None),
+    'gp-prior': (False, False, (1e-3, 0.3)),
+    'mixed': (True, False, (0.3e-3, 0.15)),
+}
+
+START_TIME_NS = 1_700_000_000 * 1_000_000_000
+OCCLUSION_NONE, OCCLUSION_LINK, OCCLUSION_RANDOM, OUTSIDE_IMAGE = 0, 1, 2, 3
+
+
+def default_urdf_path():
+    """Path of the bundled PUMA 560 URDF (source tree or installed share directory)."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    candidates = [os.path.join(here, '..', '..', 'urdf', 'puma560.urdf'),
+                  os.path.join(sys.prefix, 'share', 'armcal_ros', 'urdf', 'puma560.urdf')]
+    for c in candidates:
+        if os.path.exists(c):
+            return os.path.normpath(c)
+    raise FileNotFoundError(f'puma560.urdf not found in {candidates}')
+
+
+@dataclass
+class SimSettings:
+    """Everything a cell simulation depends on besides the scenario and seed."""
+
+    duration: float = 60.0
+    urdf_path: str = ''                      # '' = the bundled PUMA 560
+    base_frame: str = 'base_link'
+    marker_link: str = 'marker'
+    marker_offset: tuple = (0.0, 0.0, 0.0)  # marker centre in marker_link, m
+    marker_radius: float = 0.005
+    # workspace the operator works in (base frame, m) and the joint ranges used to get there
+    workspace_min: tuple = (0.3, -0.35, -0.35)
+    workspace_max: tuple = (0.8, 0.35, 0.3)
+    joint_range_deg: Optional[tuple] = ((-60, 60), (0, 110), (-230, -120), (-90, 90),
+                                        (-100, 100), (-90, 90))
+    hop_sigma_deg: tuple = (8, 6, 8, 20, 20, 25)
+    far_jump_probability: float = 0.15
+    partial_view_probability: float = 0.2  # targets the arm hides from one camera
+    speed_fraction: float = 0.5             # of the URDF velocity limits
+    dwell: tuple = (0.4, 1.2)               # s
+    min_move_time: float = 0.4              # s
+    # cameras
+    camera_names: tuple = ('cam1', 'cam2', 'cam3')
+    image_width: int = 640
+    image_height: int = 480
+    focal: float = 800.0
+    camera_distance: tuple = (1.5, 2.0)
+    camera_height: tuple = (0.4, 1.0)
+    camera_rate: float = 15.0
+    camera_clock_ppm: float = 100.0
+    stamp_jitter: float = 0.002             # s
+    image_latency: tuple = (0.008, 0.020)   # s
+    image_margin: float = 25.0              # px, targets project at least this far inside
+    camera_min_x: float = -0.2              # m, cameras stay in front of this plane
+    # joint states
+    joint_rate: float = 200.0
+    extra_joints: tuple = ('gripper_finger_joint',)
+    # occlusion
+    link_radius: float = 0.035
+    occlusion_clearance: float = 0.02
+    occlusion_rate: float = 1.0 / 40.0      # random spans per second per camera
+    occlusion_duration: tuple = (0.3, 1.5)
+    # robot errors (see true_robot)
+    offset_deg: float = 0.05
+    translation_mm: float = 0.3
+    rotation_deg: float = 0.03
+    tip_translation_mm: float = 0.2
+    periodic_deg: tuple = (0.01, 0.025)
+    compliance_deg: float = 0.02
+    sensor: SensorModel = field(default_factory=SensorModel)
+
+    def __post_init__(self):
+        if isinstance(self.sensor, dict):
+            self.sensor = SensorModel(**self.sensor)
+        if self.duration <= 2.0:
+            raise ValueError(f'duration must be > 2 s, got {self.duration}')
+        if self.camera_rate <= 0 or self.joint_rate <= 0:
+            raise ValueError('camera_rate and joint_rate must be > 0')
+        if len(self.camera_names) < 1:
+            raise ValueError('camera_names must name at least one camera')
+
+    def to_dict(self):
+        """Plain dictionary (YAML-safe)."""
+        def plain(v):
+            if isinstance(v, (tuple, list)):
+                return [plain(x) for x in v]
+            if isinstance(v, dict):
+                return {k: plain(x) for k, x in v.items()}
+            if isinstance(v, (np.floating, np.integer)):
+                return v.item()
+            return v
+        return plain(asdict(self))
+
+
+@dataclass
+class DwellTruth:
+    """Per dwell: times (ns, bag clock), held joint readings (D, n), true/nominal marker (D, 3)."""
+
+    start_ns: np.ndarray
+    end_ns: np.ndarray
+    q: np.ndarray
+    true_marker: np.ndarray
+    nominal_marker: np.ndarray
+
+    @property
+    def stamp_ns(self):
+        """Middle of each dwell."""
+        return (self.start_ns + self.end_ns) // 2
+
+    def __len__(self):
+        """Return the number of dwells."""
+        return len(self.start_ns)
+
+
+@dataclass
+class FrameTruth:
+    """
+    Per camera frame, in bag (receive) order.
+
+    ``camera`` index into the cameras, ``stamp_ns`` the header stamp, ``exposure_ns`` the true
+    middle of the exposure, ``log_ns`` the bag time, ``marker`` (F, 3) the true marker at
+    mid-exposure, ``uv`` (F, 2) its projection (the truth a detector should find),
+    ``occlusion`` one of OCCLUSION_NONE/LINK/RANDOM/OUTSIDE_IMAGE, ``visible`` = none.
+    ``exposure_markers`` (F, K, 3) the marker over the exposure (for motion blur).
+    """
+
+    camera: np.ndarray
+    stamp_ns: np.ndarray
+    exposure_ns: np.ndarray
+    log_ns: np.ndarray
+    marker: np.ndarray
+    uv: np.ndarray
+    occlusion: np.ndarray
+    exposure_markers: np.ndarray
+
+    @property
+    def visible(self):
+        """Frames whose marker is in the image and unoccluded."""
+        return self.occlusion == OCCLUSION_NONE
+
+    def __len__(self):
+        """Return the number of frames."""
+        return len(self.stamp_ns)
+
+
+@dataclass
+class SimResult:
+    """Everything :func:`simulate_cell` produced (see the module docstring)."""
+
+    scenario: str
+    seed: int
+    settings: SimSettings
+    robot: TrueRobot
+    cameras: list
+    trajectory: Trajectory
+    joint_names: List[str]            # published order, including extra joints
+    joint_stamps_ns: np.ndarray       # (N,)
+    joint_positions: np.ndarray       # (N, len(joint_names))
+    joint_velocities: np.ndarray      # (N, len(joint_names))
+    frames: FrameTruth
+    dwells: DwellTruth
+    start_ns: int = START_TIME_NS
+
+    @property
+    def chain(self):
+        """Return the nominal kinematic chain."""
+        return self.robot.chain
+
+    def render(self, i, encoding='mono8', sensor: Optional[SensorModel] = None, clean=False):
+        """
+        Render frame ``i`` as a uint8 image (mono8 (H, W) or rgb8/bgr8 (H, W, 3)).
+
+        Deterministic per (seed, i).  ``clean`` renders the marker alone without noise,
+        glints or occlusion (for tests of the geometry).
+        """
+        sensor = sensor or self.settings.sensor
+        f = self.frames
+        cam = self.cameras[int(f.camera[i])]
+        rng = np.random.default_rng([self.seed, 1009, int(i)])
+        patches = []
+        if clean or f.occlusion[i] in (OCCLUSION_NONE, OUTSIDE_IMAGE):
+            centres = f.exposure_markers[i]
+            if np.ptp(centres, axis=0).max() < 1e-7:
+                centres = centres[:1]
+            depth = cam.to_camera(centres[:1])[0, 2]
+            blur = np.hypot(sensor.defocus_sigma,
+                            sensor.defocus_slope * (depth - self._focus[int(f.camera[i])]))
+            got = marker_signal(cam, centres, self.settings.marker_radius, sensor,
+                                0.0 if clean else blur)
+            if got is not None:
+                patches.append(got)
+        if not clean:
+            patches += glint_patches(cam, rng, sensor, near_uv=f.uv[i])
+        if clean:
+            sensor = SensorModel(**{**asdict(sensor), 'read_noise': 0.0, 'gain': 1e9,
+                                    'glint_rate': 0.0})
+        return expose(cam, patches, rng, sensor, encoding)
+
+    @property
+    def _focus(self):
+        centre = 0.5 * (np.asarray(self.settings.workspace_min) +
+                        np.asarray(self.settings.workspace_max))
+        return [float(c.to_camera(centre[None])[0, 2]) for c in self.cameras]
+
+    def iter_images(self, encoding='mono8'):
+        """Yield (frame index, camera name, image) in bag order."""
+        for i in range(len(self.frames)):
+            yield i, self.cameras[int(self.frames.camera[i])].name, self.render(i, encoding)
+
+
+# ---- geometry helpers --------------------------------------------------------------------
+
+def _segment_distance(p0, p1, q0, q1):
+    """Smallest distance between segments [p0, p1] and [q0, q1], arrays (..., 3)."""
+    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
+    a = np.einsum('...i,...i', d1, d1)
+    e = np.einsum('...i,...i', d2, d2)
+    f = np.einsum('...i,...i', d2, r)
+    c = np.einsum('...i,...i', d1, r)
+    b = np.einsum('...i,...i', d1, d2)
+    denom = a * e - b * b
+    eps = 1e-12
+    s = np.where(denom > eps, np.clip((b * f - c * e) / np.maximum(denom, eps), 0, 1), 0.0)
+    t = np.where(e > eps, (b * s + f) / np.maximum(e, eps), 0.0)
+    s = np.where(t < 0, np.where(a > eps, np.clip(-c / np.maximum(a, eps), 0, 1), 0.0), s)
+    s = np.where(t > 1, np.where(a > eps, np.clip((b - c) / np.maximum(a, eps), 0, 1), 0.0), s)
+    t = np.clip(t, 0, 1)
+    diff = (p0 + d1 * s[..., None]) - (q0 + d2 * t[..., None])
+    return np.linalg.norm(diff, axis=-1)
+
+
+def link_occluded(chain, q, marker, camera_centre, link_radius, clearance):
+    """
+    Whether the arm's links hide ``marker`` (M, 3) from a camera centre (3,), for q (M, n).
+
+    Links are capsules of ``link_radius`` between consecutive link-frame origins, starting at
+    the base origin; the line of sight stops ``clearance`` short of the marker so the marker's
+    own mount does not count.
+    """
+    q = np.atleast_2d(q)
+    origins = chain.link_frames(q)[:, :, :3, 3]
+    pts = np.concatenate([np.zeros((len(q), 1, 3)), origins], axis=1)
+    sight = marker - camera_centre
+    length = np.linalg.norm(sight, axis=1, keepdims=True)
+    end = camera_centre + sight * (1.0 - clearance / length)
+    start = np.broadcast_to(camera_centre, end.shape)
+    hidden = np.zeros(len(q), bool)
+    for k in range(pts.shape[1] - 1):
+        hidden |= _segment_distance(start, end, pts[:, k], pts[:, k + 1]) < link_radius
+    return hidden
+
+
+def _build_robot(chain, scenario, rng, s: SimSettings, q_sample):
+    geometric, nongeometric, field_spec = SCENARIOS[scenario]
+    n = chain.n_joints
+    errors = np.zeros(chain.n_errors)
+    amp, phase, compliance = np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n)
+    # always draw everything in the same order so scenarios with the same seed share draws
+    e = draw_geometric_errors(chain, rng, s.offset_deg, s.translation_mm, s.rotation_deg,
+                              s.tip_translation_mm)
+    a, p = draw_periodic(chain, rng, s.periodic_deg)
+    c = draw_compliance(chain, rng, q_sample, s.compliance_deg)
+    field_rng = np.random.default_rng(rng.integers(2 ** 63))
+    if geometric:
+        errors = e
+    if nongeometric:
+        amp, phase, compliance = a, p, c
+    bias = None
+    if field_spec is not None:
+        bias = FourierBiasField(field_spec[0], field_spec[1], field_rng)
+    return TrueRobot(chain, np.asarray(s.marker_offset, float), errors, amp, phase,
+                     compliance, bias)
+
+
+def _load_chain(s: SimSettings):
+    from armcal_ros.robot.kinematics import KinematicChain
+    path = s.urdf_path or default_urdf_path()
+    with open(path, encoding='utf-8') as f:
+        return KinematicChain.from_urdf(f.read(), base_frame=s.base_frame,
+                                        tip_link=s.marker_link)
+
+
+def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, chain=None):
+    """
+    Simulate a cell; returns a :class:`SimResult` (no images are rendered until asked).
+
+    ``scenario`` is one of :data:`SCENARIOS`; ``duration`` (s) overrides
+    ``settings.duration``; ``chain`` overrides the URDF in the settings.
+    """
+    if scenario not in SCENARIOS:
+        raise ValueError(f'scenario must be one of {sorted(SCENARIOS)}, got {scenario!r}')
+    s = settings or SimSettings()
+    if duration is not None:
+        s = SimSettings(**{**s.__dict__, 'duration': float(duration)})
+    seed = int(seed)
+    rng = np.random.default_rng(seed)
+    chain = chain or _load_chain(s)
+    n = chain.n_joints
+    if s.joint_range_deg is not None and len(s.joint_range_deg) == n:
+        lo, hi = (np.radians(np.asarray(s.joint_range_deg, float)).T)
+    else:
+        lo, hi = np.maximum(chain.lower, -np.pi), np.minimum(chain.upper, np.pi)
+    hop = np.radians(np.resize(np.asarray(s.hop_sigma_deg, float), n))
+    wmin, wmax = np.asarray(s.workspace_min, float), np.asarray(s.workspace_max, float)
+    point = np.asarray(s.marker_offset, float)
+
+    # A camera behind the robot would look at the marker through the arm most of the time;
+    # redraw the ring until every camera is on the workspace side of the base.
+    for _ in range(1000):
+        cams = ring_of_cameras(len(s.camera_names), 0.5 * (wmin + wmax), rng,
+                               distance=s.camera_distance, height=s.camera_height,
+                               width=s.image_width, height_px=s.image_height, focal=s.focal,
+                               names=list(s.camera_names))
+        if all(c.center[0] > s.camera_min_x for c in cams):
+            break
+
+    def valid(q, need=len(cams)):
+        q = np.atleast_2d(q)
+        x = chain.fk(q, point)
+        ok = np.all((x >= wmin) & (x <= wmax), axis=1)
+        n_clear = np.zeros(len(q), int)
+        for cam in cams:
+            uv = cam.project(x)
+            inside = cam.in_front(x) & (uv[:, 0] >= s.image_margin) \
+                & (uv[:, 0] <= cam.width - 1 - s.image_margin) \
+                & (uv[:, 1] >= s.image_margin) & (uv[:, 1] <= cam.height - 1 - s.image_margin)
+            ok &= inside
+            n_clear += ~link_occluded(chain, q, x, cam.center, s.link_radius,
+                                      s.occlusion_clearance)
+        return ok & (n_clear >= need)
+
+    def uniform_valid(rng, tries=20000):
+        for _ in range(tries // 200):
+            cand = rng.uniform(lo, hi, (200, n))
+            good = np.flatnonzero(valid(cand))
+            if len(good):
+                return cand[good[0]]
+        raise RuntimeError('no joint configuration puts the marker in the workspace and in '
+                           'view of the cameras; check workspace and joint ranges')
+
+    def sample_target(rng, q):
+        need = len(cams)
+        if rng.random() < s.partial_view_probability:
+            need = min(2, len(cams))
+        if rng.random() >= s.far_jump_probability:
+            cand = np.clip(q + rng.standard_normal((50, n)) * hop, lo, hi)
+            good = np.flatnonzero(valid(cand, need))
+            if len(good):
+                return cand[good[0]]
+        return uniform_valid(rng)
+
+    q_sample = rng.uniform(lo, hi, (500, n))
+    robot = _build_robot(chain, scenario, rng, s, q_sample)
+    speed = np.where(np.isfinite(chain.velocity_limits), chain.velocity_limits, 2.0)
+    traj = teleop_trajectory(sample_target, uniform_valid(rng), s.duration, rng,
+                             speed * s.speed_fraction, dwell=s.dwell,
+                             min_move_time=s.min_move_time)
+    T = min(traj.duration, s.duration)
+
+    # joint states on the control clock
+    t_js = np.arange(0.0, T, 1.0 / s.joint_rate)
+    q_js = traj.positions(t_js)
+    qd_js = traj.velocities(t_js)
+    extra = list(s.extra_joints)
+    order = rng.permutation(n + len(extra))
+    names_all = list(chain.joint_names) + extra
+    pub_names = [names_all[i] for i in order]
+    grip = 0.02 + 0.01 * np.sin(2 * np.pi * t_js / 17.0)
+    pos_all = np.column_stack([q_js] + [grip] * len(extra))
+    vel_all = np.column_stack([qd_js] + [np.zeros_like(grip)] * len(extra))
+    js_stamps = START_TIME_NS + np.round(t_js * 1e9).astype(np.int64)
+
+    # camera clocks
+    sens = s.sensor
+    K = max(1, int(sens.motion_samples))
+    offsets = (np.linspace(-0.5, 0.5, K) if K > 1 else np.zeros(1)) * sens.exposure
+    rows = []
+    for j, cam in enumerate(cams):
+        period = (1.0 / s.camera_rate) * (1.0 + rng.uniform(-1, 1) * s.camera_clock_ppm * 1e-6)
+        t_exp = rng.uniform(0.0, period) + np.arange(0.0, T, period)
+        t_exp = t_exp[(t_exp > 0.1) & (t_exp < T - 0.1)]
+        stamp = t_exp + rng.normal(0.0, s.stamp_jitter, len(t_exp))
+        log = t_exp + 0.5 * sens.exposure + rng.uniform(*s.image_latency, len(t_exp))
+        # random occlusion spans
+        hidden = np.zeros(len(t_exp), bool)
+        t = rng.exponential(1.0 / s.occlusion_rate) if s.occlusion_rate > 0 else np.inf
+        while t < T:
+            d = rng.uniform(*s.occlusion_duration)
+            hidden |= (t_exp >= t) & (t_exp <= t + d)
+            t += d + rng.exponential(1.0 / s.occlusion_rate)
+        rows.append((np.full(len(t_exp), j), t_exp, stamp, log, hidden))
+    cam_idx = np.concatenate([r[0] for r in rows]).astype(np.int64)
+    t_exp = np.concatenate([r[1] for r in rows])
+    stamp = np.concatenate([r[2] for r in rows])
+    log = np.concatenate([r[3] for r in rows])
+    hidden = np.concatenate([r[4] for r in rows])
+    sort = np.argsort(log, kind='stable')
+    cam_idx, t_exp, stamp, log, hidden = (a[sort] for a in (cam_idx, t_exp, stamp, log, hidden))
+
+    t_all = (t_exp[:, None] + offsets[None, :]).reshape(-1)
+    q_all = traj.positions(t_all)
+    x_all = robot.marker(q_all).reshape(len(t_exp), K, 3)
+    q_mid = traj.positions(t_exp)
+    x_mid = robot.marker(q_mid)
+    uv = np.zeros((len(t_exp), 2))
+    occ = np.zeros(len(t_exp), np.int8)
+    for j, cam in enumerate(cams):
+        m = cam_idx == j
+        if not np.any(m):
+            continue
+        uv[m] = cam.project(x_mid[m])
+        out = ~cam.in_front(x_mid[m]) | (uv[m, 0] < -0.5) | (uv[m, 1] < -0.5) \
+            | (uv[m, 0] > cam.width - 0.5) | (uv[m, 1] > cam.height - 0.5)
+        by_link = link_occluded(chain, q_mid[m], robot.nominal_marker(q_mid[m]), cam.center,
+                                s.link_radius, s.occlusion_clearance)
+        code = np.where(hidden[m], OCCLUSION_RANDOM, OCCLUSION_NONE)
+        code = np.where(by_link, OCCLUSION_LINK, code)
+        occ[m] = np.where(out, OUTSIDE_IMAGE, code)
+    to_ns = (lambda t: START_TIME_NS + np.round(t * 1e9).astype(np.int64))
+    frames = FrameTruth(cam_idx, to_ns(stamp), to_ns(t_exp), to_ns(log), x_mid, uv, occ, x_all)
+
+    spans = traj.dwells()
+    spans = spans[spans[:, 0] < T]
+    spans[:, 1] = np.minimum(spans[:, 1], T)
+    q_d = traj.dwell_knots()[:len(spans)]
+    dwells = DwellTruth(to_ns(spans[:, 0]), to_ns(spans[:, 1]), q_d, robot.marker(q_d),
+                        robot.nominal_marker(q_d))
+    return SimResult(scenario, seed, s, robot, cams, traj, pub_names, js_stamps,
+                     np.ascontiguousarray(pos_all[:, order]),
+                     np.ascontiguousarray(vel_all[:, order]), frames, dwells)
+
+
+__all__ = ['SCENARIOS', 'SimSettings', 'SimResult', 'DwellTruth', 'FrameTruth',
+           'simulate_cell', 'link_occluded', 'default_urdf_path', 'OCCLUSION_NONE',
+           'OCCLUSION_LINK', 'OCCLUSION_RANDOM', 'OUTSIDE_IMAGE']

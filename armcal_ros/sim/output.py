@@ -1,0 +1,142 @@
+"""
+Write a simulated cell (:class:`~armcal_ros.sim.cell.SimResult`) to a rosbag2 bag with its truth.
+
+Topics: ``/joint_states`` (sensor_msgs/JointState) and, per camera, ``/<cam>/image_raw``
+(sensor_msgs/Image) or ``/<cam>/image_raw/compressed`` (sensor_msgs/CompressedImage, png or
+jpeg), frame_id ``<cam>_optical_frame``; messages in bag-time (receive) order.
+
+Ground truth goes to ``<bag>/ground_truth/`` (inside the bag directory, beside the storage
+file, so it travels with the bag; rosbag2 readers ignore it):
+
+- ``<cam>.yaml`` and ``extrinsics.yaml``: the true cameras (formats of DESIGN.md section 5);
+- ``markers.npz``: per dwell ``dwell_start_ns``, ``dwell_end_ns``, ``dwell_stamp_ns`` (middle),
+  ``dwell_q`` (D, n) in ``joint_names`` order, ``dwell_true`` and ``dwell_nominal`` (D, 3) marker
+  positions in the base frame (m); per frame ``frame_camera`` (index into ``camera_names``),
+  ``frame_stamp_ns`` (header), ``frame_exposure_ns`` (true mid-exposure), ``frame_uv`` (true
+  projection of the marker centre, px), ``frame_marker`` (true position), ``frame_occlusion``
+  (0 visible, 1 hidden by a link, 2 random occlusion, 3 outside the image); and
+  ``joint_names``, ``camera_names``;
+- ``robot_errors.yaml``: the true robot's error parameters;
+- ``scenario.yaml``: scenario, seed, settings, topics and what the files mean.
+"""
+
+import os
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from armcal_ros.io.bag import BagWriter, COMPRESSED_FORMATS, IMAGE_ENCODINGS
+from armcal_ros.io.calib_files import atomic_write_text, write_cameras
+
+
+def image_topic(camera_name, compressed=None):
+    """Topic of a camera's images: /<cam>/image_raw or /<cam>/image_raw/compressed."""
+    return f'/{camera_name}/image_raw' + ('/compressed' if compressed else '')
+
+
+def write_ground_truth(result, directory, topics=None):
+    """Write the ground-truth files of ``result`` into ``directory`` (created)."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    write_cameras(directory, result.cameras, result.settings.base_frame)
+    d, f = result.dwells, result.frames
+    tmp = directory / '.markers.tmp.npz'
+    np.savez_compressed(
+        tmp, dwell_start_ns=d.start_ns, dwell_end_ns=d.end_ns, dwell_stamp_ns=d.stamp_ns,
+        dwell_q=d.q, dwell_true=d.true_marker, dwell_nominal=d.nominal_marker,
+        frame_camera=f.camera, frame_stamp_ns=f.stamp_ns, frame_exposure_ns=f.exposure_ns,
+        frame_uv=f.uv, frame_marker=f.marker, frame_occlusion=f.occlusion,
+        joint_names=np.array(result.chain.joint_names),
+        camera_names=np.array([c.name for c in result.cameras]))
+    os.replace(tmp, directory / 'markers.npz')
+    atomic_write_text(directory / 'robot_errors.yaml',
+                      yaml.safe_dump(result.robot.describe(), sort_keys=False))
+    bias = d.nominal_marker - d.true_marker
+    doc = {
+        'scenario': result.scenario,
+        'seed': result.seed,
+        'start_time_ns': int(result.start_ns),
+        'base_frame': result.settings.base_frame,
+        'marker_link': result.settings.marker_link,
+        'joint_names': list(result.chain.joint_names),
+        'published_joint_names': list(result.joint_names),
+        'camera_names': [c.name for c in result.cameras],
+        'topics': topics or {},
+        'dwells': len(d),
+        'frames': len(f),
+        'visible_frames': int(np.count_nonzero(f.visible)),
+        'bias_rms_mm': float(1e3 * np.sqrt(np.mean(np.sum(bias ** 2, axis=1))))
+        if len(d) else None,
+        'settings': result.settings.to_dict(),
+    }
+    atomic_write_text(directory / 'scenario.yaml', yaml.safe_dump(doc, sort_keys=False))
+
+
+def write_sim_bag(result, path, storage='mcap', compressed=None, encoding='mono8',
+                  compress=True, ground_truth=True, jpeg_quality=90, progress=None):
+    """
+    Write ``result`` to the rosbag2 bag directory ``path`` (must not exist).
+
+    ``compressed`` is None (raw sensor_msgs/Image), ``'png'`` or ``'jpeg'``; ``encoding`` is
+    mono8, rgb8 or bgr8; ``compress`` turns on zstd chunk compression (mcap only).
+    ``progress(i, n)`` is called now and then.  Returns {topic: message count}.
+    """
+    if compressed is not None and compressed not in COMPRESSED_FORMATS:
+        raise ValueError(f'compressed must be None or one of {COMPRESSED_FORMATS}, '
+                         f'got {compressed!r}')
+    if encoding not in IMAGE_ENCODINGS:
+        raise ValueError(f'encoding must be one of {IMAGE_ENCODINGS}, got {encoding!r}')
+    path = Path(path)
+    js_topic = '/joint_states'
+    cam_topics = [image_topic(c.name, compressed) for c in result.cameras]
+    frames = result.frames
+    js_log = result.joint_stamps_ns + 500_000      # 0.5 ms from the controller to the bag
+    # merge the two streams in receive order
+    events = np.concatenate([np.zeros(len(js_log), np.int64), np.ones(len(frames), np.int64)])
+    index = np.concatenate([np.arange(len(js_log)), np.arange(len(frames))])
+    times = np.concatenate([js_log, frames.log_ns])
+    order = np.lexsort((events, times))
+    total = len(order)
+    with BagWriter(path, storage=storage, compress=compress) as w:
+        w.connection(js_topic, 'sensor_msgs/msg/JointState')
+        for t in cam_topics:
+            w.connection(t, 'sensor_msgs/msg/CompressedImage' if compressed
+                         else 'sensor_msgs/msg/Image')
+        for k, o in enumerate(order):
+            i = int(index[o])
+            if events[o] == 0:
+                w.write_joint_state(js_topic, int(result.joint_stamps_ns[i]), result.joint_names,
+                                    result.joint_positions[i], result.joint_velocities[i],
+                                    log_ns=int(js_log[i]))
+            else:
+                j = int(frames.camera[i])
+                cam = result.cameras[j]
+                img = result.render(i, encoding)
+                frame_id = f'{cam.name}_optical_frame'
+                if compressed:
+                    w.write_compressed_image(cam_topics[j], int(frames.stamp_ns[i]), img,
+                                             compressed, encoding, frame_id,
+                                             log_ns=int(frames.log_ns[i]),
+                                             jpeg_quality=jpeg_quality)
+                else:
+                    w.write_image(cam_topics[j], int(frames.stamp_ns[i]), img, encoding,
+                                  frame_id, log_ns=int(frames.log_ns[i]))
+            if progress is not None and k % 2000 == 0:
+                progress(k, total)
+        counts = dict(w.counts)
+    if ground_truth:
+        topics = {'joint_states': js_topic,
+                  'images': {c.name: t for c, t in zip(result.cameras, cam_topics)}}
+        write_ground_truth(result, path / 'ground_truth', topics)
+    return counts
+
+
+def read_ground_truth(directory):
+    """Load markers.npz and scenario.yaml of a ground-truth directory into one dictionary."""
+    directory = Path(directory)
+    with np.load(directory / 'markers.npz') as z:
+        out = {k: z[k] for k in z.files}
+    with open(directory / 'scenario.yaml', encoding='utf-8') as f:
+        out['scenario'] = yaml.safe_load(f)
+    return out

@@ -1,0 +1,150 @@
+"""The simulated cell: truth consistency, rendering geometry, timing and scenarios."""
+
+import numpy as np
+import pytest
+
+from armcal_ros.sim.cell import (
+    link_occluded, OCCLUSION_NONE, SCENARIOS, simulate_cell, SimSettings,
+)
+from armcal_ros.sim.render import (
+    marker_signal, SensorModel, sphere_coverage, sphere_image_offset,
+)
+from armcal_ros.sim.trajectory import min_jerk
+
+
+@pytest.fixture(scope='module')
+def cell():
+    return simulate_cell('nongeometric', seed=5, duration=12.0)
+
+
+def test_truth_is_true_forward_kinematics(cell):
+    r, d = cell.robot, cell.dwells
+    assert len(d) >= 4
+    chain = cell.chain
+    q_true = d.q + r.periodic_error(d.q) + r.compliance_error(d.q)
+    np.testing.assert_allclose(d.true_marker, chain.fk(q_true, r.point, r.errors), atol=1e-12)
+    np.testing.assert_allclose(d.nominal_marker, chain.fk(d.q, r.point), atol=1e-12)
+    # the non-geometric joint errors are of the documented size (0.01-0.025 deg per term,
+    # compliance ~0.02 deg on the most loaded joint)
+    per = np.degrees(np.abs(r.periodic_error(d.q)))
+    assert per.max() < 2 * 0.025 + 1e-9 and per.max() > 0.005
+    comp = np.degrees(np.abs(r.compliance_error(d.q))).max()
+    assert 0.002 < comp < 0.03
+    bias = np.linalg.norm(d.nominal_marker - d.true_marker, axis=1)
+    assert 0.3e-3 < np.sqrt(np.mean(bias ** 2)) < 6e-3
+
+
+def test_joint_states_map_by_name_and_follow_the_trajectory(cell):
+    names = cell.joint_names
+    assert set(cell.chain.joint_names) < set(names) and 'gripper_finger_joint' in names
+    idx = cell.chain.index_map(names)
+    t = (cell.joint_stamps_ns - cell.start_ns) / 1e9
+    np.testing.assert_allclose(np.diff(t), 1 / 200.0, atol=1e-9)
+    np.testing.assert_allclose(cell.joint_positions[:, idx], cell.trajectory.positions(t))
+    # dwell positions are held still in the joint stream
+    d = cell.dwells
+    k = len(d) // 2
+    inside = (cell.joint_stamps_ns > d.start_ns[k]) & (cell.joint_stamps_ns < d.end_ns[k])
+    assert inside.sum() > 40
+    np.testing.assert_allclose(cell.joint_positions[inside][:, idx], d.q[k][None].repeat(
+        inside.sum(), 0), atol=1e-12)
+
+
+def test_camera_clocks_and_projection_truth(cell):
+    f = cell.frames
+    assert np.all(np.diff(f.log_ns) >= 0)
+    for j, cam in enumerate(cell.cameras):
+        m = f.camera == j
+        period = np.diff(np.sort(f.exposure_ns[m])) / 1e9
+        assert abs(np.median(period) - 1 / 15.0) < 1e-4
+        jitter = (f.stamp_ns[m] - f.exposure_ns[m]) / 1e9
+        assert 0.0005 < jitter.std() < 0.005
+        np.testing.assert_allclose(f.uv[m], cam.project(f.marker[m]), atol=1e-9)
+    assert len({int(f.exposure_ns[f.camera == j][0]) % 66_666_667 for j in range(3)}) == 3
+    assert f.visible.mean() > 0.6
+
+
+def test_clean_render_centroid_is_the_true_projection(cell):
+    f = cell.frames
+    checked = 0
+    for i in np.flatnonzero(f.occlusion == OCCLUSION_NONE)[:40:4]:
+        img = cell.render(i, clean=True).astype(float) - cell.settings.sensor.black_level
+        v, u = np.nonzero(img > 0)
+        w = img[v, u]
+        c = np.array([(u * w).sum(), (v * w).sum()]) / w.sum()
+        assert np.linalg.norm(c - f.uv[i]) < 0.1, (i, c, f.uv[i])
+        checked += 1
+    assert checked >= 5
+
+
+def test_sphere_image_offset_is_tiny_and_coverage_is_geometric(cell):
+    cam = cell.cameras[0]
+    X = cell.dwells.true_marker
+    off = sphere_image_offset(cam, X, 0.005)
+    assert np.all(np.abs(off) < 0.01)
+    # without vignetting and blur the rendered centroid sits on pi(C) to ~0.01 px
+    sensor = SensorModel(vignetting=False, supersample=16)
+    u0, v0, patch = marker_signal(cam, X[:1], 0.005, sensor, 0.0)
+    vv, uu = np.mgrid[v0:v0 + patch.shape[0], u0:u0 + patch.shape[1]]
+    c = np.array([(uu * patch).sum(), (vv * patch).sum()]) / patch.sum()
+    assert np.linalg.norm(c - cam.project(X[:1])[0]) < 0.02
+    # the covered area matches the disc of the sphere's angular radius
+    depth = cam.to_camera(X[:1])[0, 2]
+    area = sphere_coverage(cam, X[0], 0.005, u0, v0, patch.shape[1], patch.shape[0], 16).sum()
+    expected = np.pi * (cam.fx * 0.005 / depth) ** 2
+    assert abs(area / expected - 1) < 0.15
+
+
+def test_noisy_render_has_marker_noise_glints_and_dark_background(cell):
+    f = cell.frames
+    i = int(np.flatnonzero(f.visible)[3])
+    img = cell.render(i)
+    assert img.dtype == np.uint8 and img.shape == (480, 640)
+    u, v = np.round(f.uv[i]).astype(int)
+    assert img[v - 1:v + 2, u - 1:u + 2].max() > 80
+    assert np.median(img) == 2
+    np.testing.assert_array_equal(img, cell.render(i))      # deterministic per frame
+    rgb = cell.render(i, 'rgb8')
+    bgr = cell.render(i, 'bgr8')
+    assert rgb.shape == (480, 640, 3) and bgr.shape == (480, 640, 3)
+    assert rgb[v, u, 0] >= rgb[v, u, 2] and bgr[v, u, 2] >= bgr[v, u, 0]
+    glinty = SimSettings(duration=5.0, sensor=SensorModel(glint_rate=3.0))
+    r = simulate_cell('geometric', seed=2, settings=glinty)
+    specks = 0
+    for k in range(10):
+        img = r.render(k).astype(int)
+        u, v = np.round(r.frames.uv[k]).astype(int)
+        img[max(v - 8, 0):v + 9, max(u - 8, 0):u + 9] = 0
+        specks += int((img > 40).sum())
+    assert specks > 0
+
+
+def test_scenarios_share_draws_and_differ_as_documented():
+    out = {s: simulate_cell(s, seed=3, duration=6.0) for s in SCENARIOS}
+    q = out['geometric'].dwells.q
+    for s, r in out.items():
+        np.testing.assert_array_equal(r.dwells.q, q)       # same trajectory for one seed
+    gp = out['gp-prior']
+    assert not np.any(gp.robot.errors) and gp.robot.bias_field is not None
+    np.testing.assert_allclose(gp.dwells.true_marker - gp.dwells.nominal_marker,
+                               gp.robot.bias_field(gp.dwells.nominal_marker), atol=1e-15)
+    geo = out['geometric']
+    assert geo.robot.bias_field is None and not np.any(geo.robot.compliance)
+    np.testing.assert_array_equal(out['mixed'].robot.errors, geo.robot.errors)
+    assert np.any(out['nongeometric'].robot.periodic_amplitude)
+    with pytest.raises(ValueError, match='scenario'):
+        simulate_cell('nope', seed=0, duration=5.0)
+
+
+def test_min_jerk_and_link_occlusion(cell):
+    s, ds = min_jerk(np.array([0.0, 0.5, 1.0]))
+    np.testing.assert_allclose(s, [0, 0.5, 1])
+    np.testing.assert_allclose(ds, [0, 1.875, 0])
+    chain = cell.chain
+    q = cell.dwells.q[:1]
+    x = chain.fk(q, cell.robot.point)
+    wrist = chain.link_frames(q)[0, -1, :3, 3]
+    behind = wrist + 2.0 * (wrist - x[0]) / np.linalg.norm(wrist - x[0])
+    assert link_occluded(chain, q, x, behind, 0.035, 0.02)[0]
+    beside = x[0] + np.cross(wrist - x[0], [0, 0, 1.0]) * 30
+    assert not link_occluded(chain, q, x, beside, 0.035, 0.02)[0]
