@@ -29,6 +29,9 @@ from .samples import Observation, Sample
 
 FORMAT_VERSION = 1
 FILE_NAME = 'samples.npz'
+# Two dwells whose nominal points are closer than this are the same place (robot repeatability
+# is ~0.1 mm; encoder noise is far smaller).
+DEFAULT_SAME_POINT_TOLERANCE = 0.0005
 
 
 class AddResult(enum.Enum):
@@ -66,11 +69,12 @@ class SampleStore:
     """
     Samples keyed by id with bounded size and a minimum spacing (see the module policy).
 
+    ``same_point_tolerance`` defaults to min(0.5 mm, ``min_sample_spacing``).
     ``joint_names`` (optional) is recorded with the samples so that a saved store is not
     resumed against a different robot.
     """
 
-    def __init__(self, max_samples=2000, min_sample_spacing=0.005, same_point_tolerance=0.0005,
+    def __init__(self, max_samples=2000, min_sample_spacing=0.005, same_point_tolerance=None,
                  joint_names=None):
         if int(max_samples) != max_samples or max_samples < 1:
             raise ValueError(f'max_samples must be a positive integer, got {max_samples!r}')
@@ -78,6 +82,8 @@ class SampleStore:
         self.min_sample_spacing = float(min_sample_spacing)
         if not self.min_sample_spacing >= 0:
             raise ValueError(f'min_sample_spacing must be >= 0 (m), got {min_sample_spacing}')
+        if same_point_tolerance is None:
+            same_point_tolerance = min(DEFAULT_SAME_POINT_TOLERANCE, self.min_sample_spacing)
         self.same_point_tolerance = float(same_point_tolerance)
         if not 0 <= self.same_point_tolerance <= max(self.min_sample_spacing, 0.0):
             raise ValueError(f'same_point_tolerance must be in [0, min_sample_spacing], '

@@ -1,0 +1,190 @@
+"""Tests for samples and the sample store."""
+
+import os
+
+import numpy as np
+import pytest
+
+from armcal_ros.frontend.samples import Observation, Sample
+from armcal_ros.frontend.store import AddResult, FILE_NAME, SampleStore
+
+
+def obs(uv=(100.0, 200.0), n_frames=5, spread=0.05, ids=(0,), stamp=7):
+    return Observation(uv=np.reshape(uv, (-1, 2)), ids=ids, n_frames=n_frames,
+                       spread_px=spread, stamp_ns=stamp)
+
+
+def sample(point, cams=('cam1',), n_frames=5, q=None, **kw):
+    return Sample(point_nominal=point, observations={c: obs(n_frames=n_frames) for c in cams},
+                  q=q, **kw)
+
+
+def test_validation():
+    with pytest.raises(ValueError, match='point_nominal'):
+        Sample(point_nominal=[0, 0])
+    with pytest.raises(ValueError, match='ids'):
+        Observation(uv=np.zeros((2, 2)), ids=[0])
+    with pytest.raises(ValueError, match='pose'):
+        Sample(point_nominal=[0, 0, 0], pose=np.eye(3))
+    with pytest.raises(ValueError, match='max_samples'):
+        SampleStore(max_samples=0)
+    with pytest.raises(ValueError, match='same_point_tolerance'):
+        SampleStore(min_sample_spacing=0.001, same_point_tolerance=0.01)
+    with pytest.raises(ValueError, match='no observations'):
+        SampleStore().add(Sample(point_nominal=[0, 0, 0]))
+
+
+def test_add_assigns_ids_and_keeps_distinct_points():
+    store = SampleStore(min_sample_spacing=0.005)
+    for k in range(5):
+        assert store.add(sample([0.01 * k, 0, 0])) is AddResult.ADDED
+    assert len(store) == 5 and sorted(s.id for s in store) == [0, 1, 2, 3, 4]
+
+
+def test_same_point_merges_observations_keeping_the_better():
+    store = SampleStore(min_sample_spacing=0.005, same_point_tolerance=0.0005)
+    store.add(sample([0, 0, 0], cams=('cam1', 'cam2'), n_frames=3))
+    better = Sample(point_nominal=[0.0002, 0, 0],
+                    observations={'cam2': obs(uv=(1, 2), n_frames=9), 'cam3': obs()})
+    assert store.add(better) is AddResult.MERGED
+    (s,) = store.samples
+    assert set(s.observations) == {'cam1', 'cam2', 'cam3'}
+    np.testing.assert_allclose(s.observations['cam2'].uv, [[1, 2]])
+    np.testing.assert_allclose(s.point_nominal, 0.0)          # the stored point is kept
+    worse = Sample(point_nominal=[0, 0.0001, 0], observations={'cam2': obs(n_frames=1)})
+    assert store.add(worse) is AddResult.MERGED
+    assert store.samples[0].observations['cam2'].n_frames == 9
+
+
+def test_within_spacing_keeps_the_better_sample_without_mixing_points():
+    store = SampleStore(min_sample_spacing=0.005, same_point_tolerance=0.0005)
+    store.add(sample([0, 0, 0], cams=('cam1',)))
+    assert store.add(sample([0.003, 0, 0], cams=('cam1',), n_frames=2)) is AddResult.DROPPED
+    assert store.add(sample([0.003, 0, 0], cams=('cam1', 'cam2'))) is AddResult.REPLACED
+    (s,) = store.samples
+    np.testing.assert_allclose(s.point_nominal, [0.003, 0, 0])
+    assert set(s.observations) == {'cam1', 'cam2'}
+    assert store.counts[AddResult.DROPPED] == 1 and store.counts[AddResult.REPLACED] == 1
+
+
+def test_bounded_size_keeps_spatial_diversity():
+    store = SampleStore(max_samples=20, min_sample_spacing=0.001)
+    rng = np.random.default_rng(0)
+    # A cluster around one place, then points spread over a 1 m cube.
+    for p in rng.normal(0, 0.01, (20, 3)):
+        store.add(sample(p))
+    assert len(store) == 20
+    spread = rng.uniform(-0.5, 0.5, (40, 3))
+    for p in spread:
+        store.add(sample(p))
+    assert len(store) == 20 and store.evicted > 0
+    pts = store.arrays().points
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2) + np.eye(len(pts)) * 9
+    # FIFO would have kept only the last 20 spread points; the diversity rule keeps a set whose
+    # smallest spacing is far larger than the cluster's 1 cm.
+    assert d.min() > 0.1
+    # Nearest-neighbour bookkeeping (in storage order) stays exact through evictions.
+    pts = np.array([s.point_nominal for s in store._samples])
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2) + np.eye(len(pts)) * 9
+    np.testing.assert_allclose(store._nn_dist[:len(pts)], d.min(axis=1))
+
+
+def test_remove_and_nearest_neighbours_stay_consistent():
+    store = SampleStore(max_samples=50, min_sample_spacing=0.0)
+    rng = np.random.default_rng(5)
+    for p in rng.uniform(0, 1, (30, 3)):
+        store.add(sample(p))
+    for sid in (3, 17, 29, 0):
+        assert store.remove(sid)
+    assert not store.remove(3)
+    pts = np.array([s.point_nominal for s in store._samples])
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2) + np.eye(len(pts)) * 9
+    np.testing.assert_allclose(store._nn_dist[:len(pts)], d.min(axis=1))
+
+
+def test_solver_arrays():
+    store = SampleStore()
+    store.add(Sample(point_nominal=[0, 0, 1], observations={
+        'cam2': obs(uv=(1, 2)), 'cam1': obs(uv=(3, 4))}))
+    store.add(Sample(point_nominal=[0, 1, 1], observations={
+        'cam3': obs(uv=[[5, 6], [7, 8]], ids=(4, 9), n_frames=2)}))
+    a = store.arrays()
+    assert a.camera_names == ('cam2', 'cam1', 'cam3')
+    np.testing.assert_allclose(a.points, [[0, 0, 1], [0, 1, 1]])
+    np.testing.assert_array_equal(a.camera_index, [0, 1, 2, 2])
+    np.testing.assert_array_equal(a.point_index, [0, 0, 1, 1])
+    np.testing.assert_allclose(a.uv, [[1, 2], [3, 4], [5, 6], [7, 8]])
+    np.testing.assert_array_equal(a.target_ids, [0, 0, 4, 9])
+    np.testing.assert_array_equal(a.n_frames, [5, 5, 2, 2])
+    b = store.arrays(camera_names=['cam1', 'cam9'])
+    np.testing.assert_array_equal(b.camera_index, [0])
+    np.testing.assert_allclose(b.uv, [[3, 4]])
+    empty = SampleStore().arrays()
+    assert empty.points.shape == (0, 3) and empty.uv.shape == (0, 2)
+
+
+def test_save_load_round_trip_and_resume(tmp_path):
+    store = SampleStore(max_samples=100, min_sample_spacing=0.002, joint_names=('a', 'b'))
+    rng = np.random.default_rng(2)
+    for k in range(12):
+        cams = ('cam1', 'cam2') if k % 3 else ('cam3',)
+        s = Sample(point_nominal=rng.uniform(0, 1, 3),
+                   observations={c: obs(uv=rng.uniform(0, 640, (k % 2 + 1, 2)),
+                                        ids=np.arange(k % 2 + 1), n_frames=k + 1,
+                                        spread=0.01 * k, stamp=1000 * k) for c in cams},
+                   stamp_ns=10 ** 9 + k, q=rng.normal(size=2),
+                   pose=np.eye(4) if k == 4 else None)
+        store.add(s)
+    store.remove(5)
+    path = store.save(str(tmp_path))
+    assert path == os.path.join(str(tmp_path), FILE_NAME)
+    assert os.listdir(tmp_path) == [FILE_NAME]               # no temporary file left
+    loaded = SampleStore.load(str(tmp_path), joint_names=('a', 'b'))
+    assert loaded.max_samples == 100 and loaded.min_sample_spacing == 0.002
+    assert len(loaded) == len(store) == 11
+    a, b = store.arrays(), loaded.arrays()
+    for field in ('points', 'sample_ids', 'camera_index', 'point_index', 'uv', 'target_ids',
+                  'n_frames', 'spread_px'):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
+    assert a.camera_names == b.camera_names
+    by_id = {s.id: s for s in loaded}
+    for s in store:
+        t = by_id[s.id]
+        np.testing.assert_array_equal(s.q, t.q)
+        assert s.stamp_ns == t.stamp_ns
+        assert (s.pose is None) == (t.pose is None)
+        for c, o in s.observations.items():
+            assert t.observations[c].stamp_ns == o.stamp_ns
+    # Resume: new samples continue the id sequence.
+    loaded.add(sample([5.0, 5.0, 5.0]))
+    assert max(s.id for s in loaded) == 12
+    with pytest.raises(ValueError, match='joint_names'):
+        SampleStore.load(str(tmp_path), joint_names=('x', 'y'))
+
+
+def test_save_is_atomic_on_failure(tmp_path, monkeypatch):
+    store = SampleStore()
+    store.add(sample([0, 0, 0]))
+    store.save(str(tmp_path))
+    store.add(sample([1, 0, 0]))
+
+    def boom(*args, **kwargs):
+        raise OSError('disk full')
+    monkeypatch.setattr(os, 'replace', boom)
+    with pytest.raises(OSError, match='disk full'):
+        store.save(str(tmp_path))
+    monkeypatch.undo()
+    assert os.listdir(tmp_path) == [FILE_NAME]
+    assert len(SampleStore.load(str(tmp_path))) == 1         # the previous file is intact
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        SampleStore.load(str(tmp_path))
+    store = SampleStore()
+    store.add(sample([0, 0, 0]))
+    store.save(str(tmp_path))
+    with pytest.raises(ValueError, match='bogus'):
+        SampleStore.load(str(tmp_path), bogus=1)
+    smaller = SampleStore.load(str(tmp_path), max_samples=5)
+    assert smaller.max_samples == 5 and len(smaller) == 1
