@@ -1,0 +1,242 @@
+"""
+``armcal calibrate BAG``: the whole pipeline on a recorded rosbag2 bag, no ROS middleware needed.
+
+Messages are read with rosbags (mcap or sqlite3), fed in bag order to the same
+:class:`~armcal_ros.pipeline.SampleCollector` and :class:`~armcal_ros.engine.CalibrationEngine`
+the node uses, and the calibration is solved once at the end.  A camera topic that is missing or
+empty is reported and the other cameras are still calibrated; a message that cannot be
+deserialised is counted and skipped.
+"""
+
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Dict, List, Optional
+
+from armcal_ros.engine import CalibrationEngine, EngineSettings, SolveOutcome
+from armcal_ros.frontend.store import SampleStore
+from armcal_ros.io.bag import bag_topics, DeserializationError, iter_raw
+from armcal_ros.io.calib_files import atomic_write_text
+from armcal_ros.params import (load_params_file, prior_settings, solver_settings, urdf_text)
+from armcal_ros.pipeline import make_detectors, SampleCollector
+from armcal_ros.robot.kinematics import KinematicChain
+
+JOINT_STATE = 'sensor_msgs/msg/JointState'
+IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
+
+
+class CalibrateError(RuntimeError):
+    """A failure the user can act on; the message is the one-line reason."""
+
+
+@dataclass
+class OfflineResult:
+    """What :func:`calibrate_bag` did."""
+
+    outcome: Optional[SolveOutcome]
+    report: Dict
+    warnings: List[str] = field(default_factory=list)
+    files: List[str] = field(default_factory=list)
+
+
+def stamp_ns(header_stamp):
+    """Return a builtin_interfaces/Time as integer nanoseconds."""
+    return int(header_stamp.sec) * 1_000_000_000 + int(header_stamp.nanosec)
+
+
+def build_collector(values, log=None):
+    """Robot chain, detectors and collector from parameter values."""
+    try:
+        chain = KinematicChain.from_urdf(urdf_text(values), values['base_frame'],
+                                         values['marker_link'])
+    except ValueError as exc:
+        raise CalibrateError(f'robot model: {exc}') from exc
+    detectors = make_detectors(values, values['camera_names'])
+    return chain, SampleCollector(chain, values['marker_offset'], values['camera_names'],
+                                  detectors, values['max_marker_speed'], values['dwell_radius'],
+                                  log=log)
+
+
+def build_engine(values, chain):
+    """Engine and its sample store from parameter values."""
+    store = SampleStore(max_samples=values['max_samples'],
+                        min_sample_spacing=values['min_sample_spacing'],
+                        same_point_tolerance=min(0.0005, values['min_sample_spacing']),
+                        joint_names=chain.joint_names)
+    settings = EngineSettings(list(values['camera_names']), prior_settings(values),
+                              solver_settings(values), min_samples=values['min_samples'],
+                              solve_period_s=values['solve_period'],
+                              min_new_samples=values['min_new_samples'],
+                              base_frame=values['base_frame'])
+    return CalibrationEngine(settings, store)
+
+
+def calibrate_bag(bag, values, output_dir, progress: Callable[[int, int], None] = None,
+                  log: Callable[[str], None] = None) -> OfflineResult:
+    """Run the pipeline on ``bag`` with checked parameter ``values``; write to ``output_dir``."""
+    t0 = time.perf_counter()
+    try:
+        topics = bag_topics(bag)
+    except Exception as exc:
+        raise CalibrateError(f'cannot open bag {bag}: {exc}') from exc
+    warnings = []
+    jt = values['joint_states_topic']
+    if jt not in topics or topics[jt][1] == 0:
+        raise CalibrateError(f'bag {bag} has no messages on joint_states_topic {jt} '
+                             f'(topics: {sorted(topics)})')
+    if topics[jt][0] != JOINT_STATE:
+        raise CalibrateError(f'{jt} carries {topics[jt][0]}, not {JOINT_STATE}')
+    cam_of_topic = {}
+    for cam, topic in zip(values['camera_names'], values['image_topics']):
+        if topic not in topics or topics[topic][1] == 0:
+            warnings.append(f'camera {cam}: no messages on {topic}; it is not calibrated')
+            continue
+        if topics[topic][0] not in IMAGE_TYPES:
+            warnings.append(f'camera {cam}: {topic} carries {topics[topic][0]}, not an image; '
+                            f'it is not calibrated')
+            continue
+        cam_of_topic[topic] = cam
+    if not cam_of_topic:
+        raise CalibrateError(f'bag {bag}: none of the image_topics {values["image_topics"]} '
+                             f'has images')
+    for w in warnings:
+        if log:
+            log(w)
+    chain, collector = build_collector(values, log)
+    engine = build_engine(values, chain)
+    total = topics[jt][1] + sum(topics[t][1] for t in cam_of_topic)
+    n = 0
+    added = {'added': 0, 'merged': 0, 'replaced': 0, 'dropped': 0}
+    t_read = time.perf_counter()
+    for raw in iter_raw(bag, [jt] + list(cam_of_topic)):
+        n += 1
+        if progress and n % 500 == 0:
+            progress(n, total)
+        try:
+            msg = raw.deserialize()
+            if raw.topic == jt:
+                samples = collector.add_joint_state(stamp_ns(msg.header.stamp), msg.name,
+                                                    msg.position)
+            else:
+                samples = collector.add_image(cam_of_topic[raw.topic],
+                                              stamp_ns(msg.header.stamp), msg)
+        except DeserializationError as exc:
+            collector.counts['corrupt_message'] += 1
+            collector.log('corrupt_message', f'skipped: {exc}')
+            continue
+        for s in samples:
+            added[engine.add_sample(s).value] += 1
+    for s in collector.flush():
+        added[engine.add_sample(s).value] += 1
+    if progress:
+        progress(total, total)
+    t_front = time.perf_counter() - t_read
+    for cam, (w, h) in collector.image_sizes.items():
+        engine.set_image_size(cam, w, h)
+    if len(engine.store) < values['min_samples']:
+        raise CalibrateError(f'only {len(engine.store)} samples (min_samples '
+                             f'{values["min_samples"]}): did the arm dwell in view of the '
+                             f'cameras? front-end counts: {dict(collector.counts)}')
+    outcome = engine.solve(force=True)
+    report = make_report(values, engine, outcome, collector, warnings, added,
+                         dict(front_end_s=t_front, solve_s=outcome.time_s,
+                              total_s=time.perf_counter() - t0, messages=n))
+    if not outcome.accepted:
+        raise CalibrateError(f'calibration failed: {outcome.reason}')
+    os.makedirs(output_dir, exist_ok=True)
+    files = engine.save(output_dir)
+    path = os.path.join(output_dir, 'report.json')
+    atomic_write_text(path, json.dumps(report, indent=1))
+    files.append(path)
+    return OfflineResult(outcome, report, warnings, files)
+
+
+def make_report(values, engine, outcome, collector, warnings, added, timings):
+    """Return the report.json content."""
+    cal = outcome.calibration
+    cams = {}
+    if cal is not None:
+        for name, c in cal.summary()['cameras'].items():
+            cams[name] = c
+        init = outcome.result.init if outcome.result is not None else {}
+        for name in values['camera_names']:
+            if name not in cams:
+                r = init.get(name)
+                cams[name] = dict(status='not calibrated',
+                                  message=(r.message if r is not None else
+                                           'no usable images'))
+    return dict(
+        noise_model=values['noise_model'],
+        hyperparameters=dict(pixel_sigma=values['pixel_sigma'],
+                             point_sigma=values['point_sigma'],
+                             bias_sigma=values['bias_sigma'],
+                             coherence_length=values['coherence_length'],
+                             kernel=values['kernel'],
+                             free_distortion=list(values['free_distortion']),
+                             robust_loss=values['robust_loss'],
+                             robust_loss_scale=values['robust_loss_scale']),
+        accepted=bool(outcome.accepted), message=outcome.reason,
+        n_samples=len(engine.store), samples=added, cameras=cams,
+        front_end=dict(collector.counts), warnings=warnings, timings=timings,
+        stages=[list(s) for s in (outcome.result.stages if outcome.result else [])])
+
+
+def format_table(report):
+    """Return the short table printed by the CLI."""
+    lines = [f'noise model {report["noise_model"]}: {report["n_samples"]} samples; '
+             f'{report["message"]}',
+             f'{"camera":<10} {"fx":>9} {"fy":>9} {"cx":>8} {"cy":>8} {"k1":>8} '
+             f'{"obs":>5} {"inl":>5} {"rms px":>7}']
+    for name, c in report['cameras'].items():
+        if 'fx' not in c:
+            lines.append(f'{name:<10} {c["status"]}: {c["message"]}')
+            continue
+        s = c['std']
+        lines.append(f'{name:<10} {c["fx"]:9.2f} {c["fy"]:9.2f} {c["cx"]:8.2f} {c["cy"]:8.2f} '
+                     f'{c["dist"][0]:8.4f} {c["n_observations"]:5d} {c["n_inliers"]:5d} '
+                     f'{c["rms_px"]:7.3f}')
+        lines.append(f'{"  +/-":<10} {s["fx"]:9.2f} {s["fy"]:9.2f} {s["cx"]:8.2f} '
+                     f'{s["cy"]:8.2f} {s.get("k1", 0.0):8.4f}')
+    t = report['timings']
+    lines.append(f'front end {t["front_end_s"]:.1f} s, solve {t["solve_s"]:.1f} s')
+    return '\n'.join(lines)
+
+
+def add_arguments(p):
+    """Arguments of ``armcal calibrate``."""
+    p.add_argument('bag', metavar='BAG', help='rosbag2 bag directory (mcap or sqlite3)')
+    p.add_argument('--params', required=True, metavar='PARAMS.yaml',
+                   help='the node\'s ROS 2 parameter file (armcal: ros__parameters: ...)')
+    p.add_argument('--output', required=True, metavar='DIR', help='where to write the files')
+    p.add_argument('--noise-model', default=None,
+                   help='override the parameter file\'s noise_model')
+    p.add_argument('--quiet', action='store_true', help='no progress or log lines')
+
+
+def run(args):
+    """Run ``armcal calibrate``; return the exit status (errors raise with a one-line reason)."""
+    from armcal_ros.params import check_value
+    try:
+        values = load_params_file(args.params)
+        if args.noise_model is not None:
+            values['noise_model'] = check_value('noise_model', args.noise_model)
+    except ValueError as exc:
+        raise CalibrateError(str(exc)) from exc
+
+    def progress(i, n):
+        if not args.quiet:
+            print(f'\r  {i}/{n} messages ({100.0 * i / max(n, 1):.0f} %)', end='',
+                  file=sys.stderr, flush=True)
+
+    def log(message):
+        if not args.quiet:
+            print(f'\n[armcal] {message}', file=sys.stderr)
+
+    res = calibrate_bag(args.bag, values, args.output, progress, log)
+    if not args.quiet:
+        print('', file=sys.stderr)
+    print(format_table(res.report))
+    print(f'wrote {", ".join(os.path.basename(f) for f in res.files)} to {args.output}')
+    return 0

@@ -1,0 +1,297 @@
+"""
+The calibrator's parameters, one table for the node and the offline CLI.
+
+The ROS node declares them with descriptors; the offline CLI reads them from the same ROS 2
+parameter file.
+
+Each parameter has a type, a default, a description and a check.  A bad value is refused with the
+parameter's name and the reason - never silently replaced by a default.  DESIGN.md section 5 is
+the contract for the first block of names; the rest are documented tuning knobs.
+"""
+
+import math
+import os
+import re
+from dataclasses import dataclass
+from typing import Any, Callable, Dict, Optional
+
+import yaml
+
+from armcal_ros.core.adjustment import SolverSettings
+from armcal_ros.core.camera import DISTORTION_NAMES
+from armcal_ros.core.priors import KERNELS, NOISE_MODELS, PriorSettings
+from armcal_ros.core.robust import LOSSES
+
+NAME_RE = re.compile(r'^[A-Za-z0-9_]+$')
+MARKER_TYPES = ('sphere', 'aruco')
+NODE_NAME = 'armcal'
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter: name, type ('string', 'double', 'int', 'bool', 'double[]', 'string[]')."""
+
+    name: str
+    type: str
+    default: Any
+    description: str
+    check: Optional[Callable[[Any], Optional[str]]] = None
+    read_only: bool = False
+    minimum: Optional[float] = None
+    maximum: Optional[float] = None
+
+
+def _positive(v):
+    return None if v > 0 and math.isfinite(v) else 'must be a finite number > 0'
+
+
+def _nonneg(v):
+    return None if v >= 0 and math.isfinite(v) else 'must be a finite number >= 0'
+
+
+def _one_of(options):
+    def check(v):
+        return None if v in options else f'must be one of {list(options)}'
+    return check
+
+
+def _vec3(v):
+    if len(v) != 3 or not all(math.isfinite(x) for x in v):
+        return 'must be 3 finite numbers [x, y, z] in metres'
+    return None
+
+
+def _camera_names(v):
+    if not v:
+        return 'must name at least one camera'
+    bad = [n for n in v if not NAME_RE.match(n)]
+    if bad:
+        return f'names must use [A-Za-z0-9_] only (camera_info convention), bad: {bad}'
+    if len(set(v)) != len(v):
+        return f'has duplicate names: {v}'
+    return None
+
+
+def _topics(v):
+    bad = [t for t in v if not t or ' ' in t]
+    return f'has empty or malformed topic names: {bad}' if bad else None
+
+
+def _distortion(v):
+    bad = [d for d in v if d not in DISTORTION_NAMES]
+    return f'unknown terms {bad}; allowed {list(DISTORTION_NAMES)}' if bad else None
+
+
+PARAMS = [
+    # The contract (DESIGN.md section 5).
+    Param('robot_description', 'string', '', 'URDF text of the robot (ROS convention)'),
+    Param('robot_description_file', 'string', '',
+          'path to a URDF file (used when robot_description is empty; a relative path is '
+          'resolved against the parameter file\'s directory)'),
+    Param('base_frame', 'string', 'base_link', 'world frame: the robot base link'),
+    Param('marker_link', 'string', 'tool0', 'link the marker is attached to'),
+    Param('marker_offset', 'double[]', [0.0, 0.0, 0.0],
+          'marker (sphere or tag centre) position in marker_link, metres', _vec3),
+    Param('marker_type', 'string', 'sphere', 'marker detector: sphere or aruco',
+          _one_of(MARKER_TYPES)),
+    Param('joint_states_topic', 'string', '/joint_states', 'sensor_msgs/JointState topic'),
+    Param('camera_names', 'string[]', ['cam1', 'cam2', 'cam3'],
+          'camera names ([A-Za-z0-9_]); optical frames are <name>_optical_frame', _camera_names),
+    Param('image_topics', 'string[]', ['/cam1/image_raw', '/cam2/image_raw', '/cam3/image_raw'],
+          'one image topic per camera, same order; topics ending in /compressed carry '
+          'CompressedImage', _topics),
+    Param('noise_model', 'string', 'correlated',
+          'prior on the robot\'s points: ' + ', '.join(NOISE_MODELS), _one_of(NOISE_MODELS)),
+    Param('pixel_sigma', 'double', 0.5, 'image noise, pixels', _positive, minimum=0.0),
+    Param('point_sigma', 'double', 0.0002, 'independent point noise s_n, metres', _positive,
+          minimum=0.0),
+    Param('bias_sigma', 'double', 0.001, 'correlated bias scale s_b, metres', _nonneg,
+          minimum=0.0),
+    Param('coherence_length', 'double', 0.3, 'coherence length L of the bias, metres', _positive,
+          minimum=0.0),
+    Param('solve_period', 'double', 10.0, 'seconds between background solves', _nonneg,
+          minimum=0.0),
+    Param('min_samples', 'int', 20, 'samples (3-D points) before the first solve',
+          lambda v: None if v >= 1 else 'must be >= 1', minimum=1),
+    Param('output_dir', 'string', '',
+          'where calibration files and saved samples go (empty: $ROS_HOME/armcal, ROS_HOME '
+          'defaulting to ~/.ros)'),
+    # Tuning knobs.
+    Param('kernel', 'string', 'squared_exponential', 'correlation kernel: ' + ', '.join(KERNELS),
+          _one_of(KERNELS)),
+    Param('free_distortion', 'string[]', ['k1', 'k2', 'p1', 'p2'],
+          'plumb_bob terms to estimate (others fixed at 0)', _distortion),
+    Param('robust_loss', 'string', 'huber', 'robust loss: ' + ', '.join(LOSSES), _one_of(LOSSES)),
+    Param('robust_loss_scale', 'double', 2.0, 'robust loss scale, pixels', _positive,
+          minimum=0.0),
+    Param('outlier_gate_sigmas', 'double', 5.0,
+          'after convergence, observations beyond this many robust sigmas are gated', _positive,
+          minimum=0.0),
+    Param('max_marker_speed', 'double', 0.0375,
+          'stillness: marker speed (m/s) above which a frame is not used; the default moves the '
+          'image 0.1 px over 5 ms of stamp error at f = 800 px and 1.5 m', _positive,
+          minimum=0.0),
+    Param('dwell_radius', 'double', 0.001,
+          'still frames within this distance (m) of a dwell\'s first are pooled into one sample',
+          _positive, minimum=0.0),
+    Param('min_sample_spacing', 'double', 0.005,
+          'a new sample closer than this (m) to a stored one is merged or dropped', _nonneg,
+          minimum=0.0),
+    Param('max_samples', 'int', 2000, 'most samples kept (spatially diverse ones are kept)',
+          lambda v: None if v >= 10 else 'must be >= 10', minimum=10),
+    Param('min_new_samples', 'int', 5, 'new samples needed before a re-solve',
+          lambda v: None if v >= 0 else 'must be >= 0', minimum=0),
+    Param('sphere_min_radius_px', 'double', 1.5, 'smallest sphere image radius, pixels',
+          _positive, minimum=0.0),
+    Param('sphere_max_radius_px', 'double', 40.0, 'largest sphere image radius, pixels',
+          _positive, minimum=0.0),
+    Param('aruco_dictionary', 'string', 'DICT_4X4_50', 'ArUco dictionary (cv2.aruco name)'),
+    Param('aruco_id', 'int', -1, 'ArUco id of the marker (-1: any)'),
+    Param('publish_tf', 'bool', True, 'publish static TF base_frame -> <camera>_optical_frame'),
+    Param('set_camera_info_services', 'string[]', [],
+          'if not empty, one sensor_msgs/srv/SetCameraInfo service per camera to commit each '
+          'accepted calibration to its driver (e.g. /cam1/set_camera_info)'),
+    Param('resume', 'bool', True, 'reload saved samples and calibration from output_dir'),
+]
+BY_NAME = {p.name: p for p in PARAMS}
+
+
+def _coerce(p: Param, value):
+    """Return ``value`` as the parameter's type or raise ValueError naming it."""
+    t = p.type
+    try:
+        if t == 'string':
+            if not isinstance(value, str):
+                raise TypeError
+            return value
+        if t == 'bool':
+            if not isinstance(value, bool):
+                raise TypeError
+            return value
+        if t == 'int':
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise TypeError
+            return int(value)
+        if t == 'double':
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise TypeError
+            return float(value)
+        if t == 'double[]':
+            if isinstance(value, (str, bytes)) or any(isinstance(x, bool) for x in value):
+                raise TypeError
+            return [float(x) for x in value]
+        if t == 'string[]':
+            if isinstance(value, (str, bytes)) or not all(isinstance(x, str) for x in value):
+                raise TypeError
+            return list(value)
+    except (TypeError, ValueError):
+        pass
+    raise ValueError(f'parameter {p.name}: expected {t}, got {value!r}')
+
+
+def check_value(name, value):
+    """Coerce and check one parameter; return the value or raise ValueError(name: reason)."""
+    if name not in BY_NAME:
+        raise ValueError(f'unknown parameter {name!r}')
+    p = BY_NAME[name]
+    v = _coerce(p, value)
+    if p.check is not None:
+        why = p.check(v)
+        if why:
+            raise ValueError(f'parameter {name}: {why} (got {value!r})')
+    return v
+
+
+def check_all(values: Dict[str, Any]):
+    """Check the cross-parameter rules; raise ValueError naming the parameters."""
+    cams, topics = values['camera_names'], values['image_topics']
+    if len(cams) != len(topics):
+        raise ValueError(f'parameters camera_names and image_topics must have the same length, '
+                         f'got {len(cams)} and {len(topics)}')
+    svc = values['set_camera_info_services']
+    if svc and len(svc) != len(cams):
+        raise ValueError(f'parameter set_camera_info_services must be empty or have one entry '
+                         f'per camera ({len(cams)}), got {len(svc)}')
+    if values['sphere_min_radius_px'] >= values['sphere_max_radius_px']:
+        raise ValueError('parameters sphere_min_radius_px must be < sphere_max_radius_px')
+    if not values['robot_description'] and not values['robot_description_file']:
+        raise ValueError('parameters robot_description or robot_description_file: one must be '
+                         'set (URDF text, or a path to a URDF file)')
+
+
+def defaults():
+    """Return every parameter's default value."""
+    return {p.name: (list(p.default) if isinstance(p.default, list) else p.default)
+            for p in PARAMS}
+
+
+def load_params_file(path, node_name=NODE_NAME):
+    """
+    Read a ROS 2 parameter file and return the checked values (defaults filled in).
+
+    Accepts ``<node_name>: ros__parameters:`` and ``/**: ros__parameters:`` (both merged, the
+    node's own taking precedence) and ``/<node_name>``.  Unknown parameter names are an error
+    naming them.  A relative ``robot_description_file`` is resolved against the file's directory.
+    """
+    try:
+        with open(path) as f:
+            doc = yaml.safe_load(f)
+    except (OSError, yaml.YAMLError) as exc:
+        raise ValueError(f'{path}: cannot read the parameter file: {exc}') from exc
+    if not isinstance(doc, dict):
+        raise ValueError(f'{path}: expected a mapping of node names to ros__parameters')
+    merged = {}
+    for key in ('/**', node_name, '/' + node_name):
+        section = doc.get(key)
+        if section is None:
+            continue
+        if not isinstance(section, dict) or 'ros__parameters' not in section:
+            raise ValueError(f'{path}: section {key!r} has no ros__parameters')
+        merged.update(section['ros__parameters'] or {})
+    if not merged:
+        raise ValueError(f'{path}: no ros__parameters for {node_name!r} or /** '
+                         f'(sections found: {list(doc)})')
+    unknown = sorted(k for k in merged if k not in BY_NAME)
+    if unknown:
+        raise ValueError(f'{path}: unknown parameter(s) {unknown}')
+    values = defaults()
+    for k, v in merged.items():
+        values[k] = check_value(k, v)
+    rel = values['robot_description_file']
+    if rel and not os.path.isabs(rel):
+        values['robot_description_file'] = os.path.normpath(
+            os.path.join(os.path.dirname(os.path.abspath(path)), rel))
+    check_all(values)
+    return values
+
+
+def urdf_text(values):
+    """Return the URDF text from robot_description or robot_description_file."""
+    if values['robot_description']:
+        return values['robot_description']
+    path = values['robot_description_file']
+    try:
+        with open(path) as f:
+            return f.read()
+    except OSError as exc:
+        raise ValueError(f'parameter robot_description_file: cannot read {path}: {exc}') from exc
+
+
+def default_output_dir():
+    """Return $ROS_HOME/armcal (ROS_HOME defaulting to ~/.ros)."""
+    home = os.environ.get('ROS_HOME') or os.path.join(os.path.expanduser('~'), '.ros')
+    return os.path.join(home, 'armcal')
+
+
+def prior_settings(values) -> PriorSettings:
+    """Build the prior settings from parameter values."""
+    return PriorSettings(values['noise_model'], values['point_sigma'], values['bias_sigma'],
+                         values['coherence_length'], values['kernel']).validate()
+
+
+def solver_settings(values) -> SolverSettings:
+    """Build the solver settings from parameter values."""
+    return SolverSettings(pixel_sigma=values['pixel_sigma'],
+                          free_distortion=tuple(values['free_distortion']),
+                          loss=values['robust_loss'], loss_scale=values['robust_loss_scale'],
+                          gate_sigmas=values['outlier_gate_sigmas']).validate()
