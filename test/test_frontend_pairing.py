@@ -97,6 +97,8 @@ def test_refused_joint_states():
     assert hist.add(0, JOINTS, [np.inf, 0.2]) is JointStatus.NON_FINITE
     assert hist.add(0, ('x',) + JOINTS, [np.nan, 0.1, 0.2]) is JointStatus.OK   # NaN elsewhere
     assert hist.add(0, JOINTS, [0.1]) is JointStatus.MALFORMED
+    assert hist.add(0, JOINTS + ('elbow',), [0.1, 0.2, 0.3]) is JointStatus.MALFORMED
+    assert hist.missing == ('elbow',)
     assert hist.add(0, JOINTS, [0.1, 0.2]) is JointStatus.DUPLICATE
     assert hist.add(100 * MS, JOINTS, [0.1, 0.2]) is JointStatus.OK
     assert hist.add(50 * MS, JOINTS, [0.1, 0.2]) is JointStatus.OUT_OF_ORDER
@@ -318,3 +320,21 @@ def test_pairer_and_pooler_end_to_end():
         assert set(s.observations) == {'cam1', 'cam2'}
         assert min(o.n_frames for o in s.observations.values()) >= 15
         np.testing.assert_allclose(s.observations['cam1'].uv[0], s.point_nominal[:2] * 1000)
+
+
+def test_with_the_robot_model():
+    """The real KinematicChain plugs in through a closure: fk(Q) = chain.fk(Q, point=offset)."""
+    import os
+    from armcal_ros.robot.kinematics import KinematicChain
+    urdf = os.path.join(os.path.dirname(__file__), '..', 'urdf', 'puma560.urdf')
+    chain = KinematicChain.from_file(urdf, tip_link='tool0')
+    offset = np.array([0.0, 0.0, 0.05])
+    pairer = FramePairer(chain.joint_names, lambda Q: chain.fk(Q, point=offset))
+    q0 = np.linspace(0.1, 0.6, chain.n_joints)
+    names = list(reversed(chain.joint_names))
+    for k in range(20):
+        pairer.add_joint_state(k * 5 * MS, names, q0[::-1])
+    (frame,) = pairer.add_frame('cam1', 50 * MS)
+    assert frame.status is PairStatus.STILL
+    np.testing.assert_allclose(frame.q, q0)
+    np.testing.assert_allclose(frame.point, chain.fk(q0[None], point=offset)[0])

@@ -59,7 +59,7 @@ class JointStatus(enum.Enum):
     DUPLICATE = 'duplicate'          # same stamp as the newest sample: dropped
     NON_FINITE = 'non_finite'        # NaN or inf among the chain's joints: dropped
     MISSING_JOINT = 'missing_joint'  # a chain joint is not in the message: dropped
-    MALFORMED = 'malformed'          # names and positions differ in length: dropped
+    MALFORMED = 'malformed'          # names/positions lengths differ, or a joint repeated
 
 
 class PairStatus(enum.Enum):
@@ -113,7 +113,7 @@ class JointHistory:
         self._q = np.zeros((2 * self.capacity, n))
         self._start = self._end = 0
         self._index_maps = {}
-        self.missing = ()           # the chain joints absent from the last refused message
+        self.missing = ()     # chain joints absent (or repeated) in the last refused message
 
     def __len__(self):
         return self._end - self._start
@@ -146,10 +146,17 @@ class JointHistory:
         key = tuple(names)
         found = self._index_maps.get(key)
         if found is None:
-            where = {name: i for i, name in enumerate(key)}
+            where = {}
+            for i, name in enumerate(key):
+                where.setdefault(name, []).append(i)
             missing = tuple(n for n in self.joint_names if n not in where)
-            found = missing if missing else np.array([where[n] for n in self.joint_names],
-                                                     dtype=np.intp)
+            repeated = tuple(n for n in self.joint_names if len(where.get(n, ())) > 1)
+            if missing:
+                found = (JointStatus.MISSING_JOINT, missing)
+            elif repeated:
+                found = (JointStatus.MALFORMED, repeated)
+            else:
+                found = np.array([where[n][0] for n in self.joint_names], dtype=np.intp)
             if len(self._index_maps) < 64:
                 self._index_maps[key] = found
         return found
@@ -169,8 +176,8 @@ class JointHistory:
             return JointStatus.MALFORMED
         index = self._index_map(names)
         if isinstance(index, tuple):
-            self.missing = index
-            return JointStatus.MISSING_JOINT
+            status, self.missing = index
+            return status
         q = positions[index]
         if not np.all(np.isfinite(q)):
             return JointStatus.NON_FINITE
