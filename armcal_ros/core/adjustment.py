@@ -167,6 +167,44 @@ class AdjustmentResult:
     covariance: Optional[np.ndarray] = None
     parameter_names: List[str] = field(default_factory=list)
     gate_px: float = float('nan')
+    log_evidence: float = float('nan')
+    global_parameters: Optional[np.ndarray] = None
+    global_covariance: Optional[np.ndarray] = None
+    kinematic_errors: Optional[Dict[str, float]] = None
+    kinematic_std: Optional[Dict[str, float]] = None
+    prior: Optional[PointPrior] = None
+    prior_settings: Optional[PriorSettings] = None
+
+    def predict_offsets(self, measured, jacobian=None):
+        """
+        The fitted prior's prediction of X - X^ at other robot points (M, 3).
+
+        ``measured`` (M, 3) are robot-measured points, ``jacobian`` (M, 3, P) their kinematic
+        Jacobian (needed by 'kinematic' and 'hybrid').  For the exact correlated prior this is
+        the Gaussian-process posterior mean of the bias; for the lattice field its interpolant;
+        for the kinematic part J_p dp.  Used for held-out checks.
+        """
+        measured = np.asarray(measured, float)
+        out = np.zeros_like(measured)
+        pr = self.prior
+        if pr is None or pr.kind in ('fixed', 'block'):
+            return out
+        if pr.kind == 'dense':
+            st = pr.settings
+            from armcal_ros.core.priors import kernel_matrix
+            Ks = st.bias_sigma ** 2 * kernel_matrix(measured, pr.measured, st.coherence_length,
+                                                    st.kernel)
+            return Ks @ pr.gradient_half(self.points)
+        g = self.global_parameters
+        if 'kinematic' in pr.global_slices:
+            if jacobian is None:
+                raise ValueError('predict_offsets needs the jacobian for a kinematic prior')
+            dp = g[pr.global_slices['kinematic']] * pr.kinematics.sigma * \
+                pr.settings.kinematic_scale
+            out += np.asarray(jacobian, float) @ dp
+        if 'field' in pr.global_slices:
+            out += pr.field.evaluate(measured, g[pr.global_slices['field']])
+        return out
 
     def camera_list(self):
         """Return the estimated cameras in input order."""
@@ -220,6 +258,12 @@ class _Problem:
                           for j in range(len(cameras))]
         if prior.kind == 'dense':
             self.P_dense = np.kron(prior.scalar_precision(), np.eye(3))
+        self.n_global = prior.n_global if prior.kind == 'global' else 0
+        if self.n_global:
+            p = prior.precision
+            # H_gg = sum_i p_i A_i^T A_i + I does not depend on the state (A is fixed).
+            self.H_gg = prior.design.gram(p[:, None, None] * np.eye(3)) + np.eye(self.n_global)
+            self.H_gg_diag = np.diag(self.H_gg).copy()
 
     def residuals(self, cams, X):
         """Squared pixel residual norms per active observation, by camera."""
@@ -230,16 +274,18 @@ class _Problem:
             out.append(np.sum((uv - self.obs.uv[idx]) ** 2, axis=1))
         return out
 
-    def cost(self, cams, X):
+    def cost(self, cams, X, g=None):
         s2 = self.s.pixel_sigma ** 2
         total = sum(float(np.sum(rho(s, self.s.loss, self.s.loss_scale))) for s in
                     self.residuals(cams, X)) / s2
-        if self.optimise_points:
+        if self.prior.kind == 'global':
+            total += self.prior.global_cost(X, g)
+        elif self.optimise_points:
             total += self.prior.cost(X)
         return total
 
-    def normal_equations(self, cams, X):
-        """Assemble U (block), W (dense), V (blocks or dense), g_c, g_x."""
+    def normal_equations(self, cams, X, g=None):
+        """Assemble U (block), W (dense), V (blocks or dense), g_c, g_x, g_g."""
         lay = self.layout
         pc = lay.per_camera
         n = self.n
@@ -273,25 +319,88 @@ class _Problem:
                     np.add.at(W, (sl, pts), blocks.transpose(1, 0, 2))
                 np.add.at(Vb, pts, np.einsum('mki,mkj->mij', wJx, Jx))
                 np.add.at(g_x, pts, np.einsum('mki,mk->mi', wJx, r))
-        if self.optimise_points:
+        g_g = np.zeros(self.n_global)
+        if self.prior.kind == 'global':
+            p = self.prior.precision
+            pr = p[:, None] * (X - self.measured - self.prior.global_offsets(g))
+            g_x += pr
+            if self.n_global:
+                g_g = g - self.prior.design.apply_T(pr)
+        elif self.optimise_points:
             g_x += self.prior.gradient_half(X)
-        return U, g_c, W, Vb, g_x
+        return U, g_c, W, Vb, g_x, g_g
 
-    def scaled_gradient(self, U, g_c, Vb, g_x):
+    def scaled_gradient(self, U, g_c, Vb, g_x, g_g=None):
         """Return max_k |g_k| / sqrt(h_kk): the gradient in Marquardt-scaled units."""
         g = np.abs(g_c) / np.sqrt(np.maximum(np.diag(U), 1e-300))
         out = float(np.max(g)) if g.size else 0.0
         if self.optimise_points and g_x.size:
             if self.prior.kind == 'block':
                 h = np.diagonal(Vb, axis1=1, axis2=2) + 1.0 / self.prior.settings.point_sigma ** 2
+            elif self.prior.kind == 'global':
+                h = np.diagonal(Vb, axis1=1, axis2=2) + self.prior.precision[:, None]
             else:
                 h = np.diagonal(Vb, axis1=1, axis2=2) + \
                     np.diag(self.prior.scalar_precision())[:, None]
             out = max(out, float(np.max(np.abs(g_x) / np.sqrt(h))))
+        if self.n_global:
+            out = max(out, float(np.max(np.abs(g_g) / np.sqrt(self.H_gg_diag))))
         return out
 
-    def solve_step(self, U, g_c, W, Vb, g_x, lam):
-        """Solve the Marquardt-damped system for the camera step dc and the point step dx."""
+    def _global_system(self, U, g_c, W, Vb, g_x, g_g, lam):
+        """
+        Reduced system over (cameras, globals) after eliminating the 3x3 point blocks.
+
+        With p_i the point precision, V_i = Vb_i + p_i I, E_i = V_i^-1 (damped), H_xg_i =
+        -p_i A_i^T:  S_cc = U - sum W_i E_i W_i^T,  S_gc = sum p_i A_i^T E_i W_i^T,
+        S_gg = sum A_i^T (p_i I - p_i^2 E_i) A_i + I,  rhs_c = -g_c + sum W_i E_i g_x_i,
+        rhs_g = -g_g - sum p_i A_i^T E_i g_x_i.
+        """
+        n = self.n
+        C = self.layout.size
+        p = self.prior.precision
+        V = Vb + p[:, None, None] * np.eye(3)
+        if lam:
+            dV = np.diagonal(V, axis1=1, axis2=2).copy()
+            V[:, [0, 1, 2], [0, 1, 2]] += lam * np.maximum(dV, 1e-12)
+        E = np.linalg.inv(V)
+        WE = np.einsum('pnk,nkl->pnl', W, E)
+        Wm = W.reshape(C, 3 * n)
+        dU = np.diag(U).copy()
+        dU[dU <= 0] = 1e-12
+        S_cc = U + np.diag(lam * dU) - WE.reshape(C, 3 * n) @ Wm.T
+        rhs_c = -g_c + WE.reshape(C, 3 * n) @ g_x.reshape(-1)
+        G = self.n_global
+        if not G:
+            return S_cc, rhs_c, E
+        design = self.prior.design
+        Cg = p[:, None, None] * np.eye(3) - (p * p)[:, None, None] * E
+        S_gg = design.gram(Cg) + np.eye(G) + np.diag(lam * self.H_gg_diag)
+        S_gc = design.cross(p[:, None, None] * WE.transpose(1, 2, 0))
+        rhs_g = -g_g - design.apply_T(p[:, None] * np.einsum('nkl,nl->nk', E, g_x))
+        S = np.empty((C + G, C + G))
+        S[:C, :C] = S_cc
+        S[C:, C:] = S_gg
+        S[C:, :C] = S_gc
+        S[:C, C:] = S_gc.T
+        return S, np.concatenate([rhs_c, rhs_g]), E
+
+    def solve_step(self, U, g_c, W, Vb, g_x, lam, g_g=None):
+        """Solve the damped system for the camera step dc, the point step dx (and dg)."""
+        if self.prior.kind == 'global':
+            S, rhs, E = self._global_system(U, g_c, W, Vb, g_x, g_g, lam)
+            d = _spd_solve(S, rhs)
+            C = self.layout.size
+            dc, dg = d[:C], d[C:]
+            t = -g_x - np.einsum('pnk,p->nk', W, dc)
+            if self.n_global:
+                t += self.prior.precision[:, None] * self.prior.design.apply(dg)
+            dx = np.einsum('nkl,nl->nk', E, t)
+            return dc, dx, dg
+        dc, dx = self._solve_step_plain(U, g_c, W, Vb, g_x, lam)
+        return dc, dx, np.zeros(0)
+
+    def _solve_step_plain(self, U, g_c, W, Vb, g_x, lam):
         dU = np.diag(U).copy()
         dU[dU <= 0] = 1e-12
         Ud = U + np.diag(lam * dU)
@@ -327,31 +436,50 @@ class _Problem:
         dx = (-Vig - ViWt @ dc).reshape(n, 3)
         return dc, dx
 
-    def reduced_matrix(self, cams, X):
-        """Undamped Schur complement S at (cams, X): the inverse camera covariance."""
-        U, g_c, W, Vb, g_x = self.normal_equations(cams, X)
+    def reduced_matrix(self, cams, X, g=None):
+        """Undamped Schur complement S at (cams, X[, g]): the inverse (camera, global) cov."""
+        return self.reduced_and_logdet(cams, X, g)[0]
+
+    def reduced_and_logdet(self, cams, X, g=None):
+        """
+        Return (S, log det of the eliminated point block V, log det of the prior precision).
+
+        The two log-determinants feed the Laplace approximation of the evidence.
+        """
+        U, g_c, W, Vb, g_x, g_g = self.normal_equations(cams, X, g)
         if not self.optimise_points:
-            return U
+            return U, 0.0, 0.0
         n = self.n
+        if self.prior.kind == 'global':
+            S, _, _ = self._global_system(U, g_c, W, Vb, g_x, g_g, 0.0)
+            p = self.prior.precision
+            V = Vb + p[:, None, None] * np.eye(3)
+            return S, float(np.sum(np.linalg.slogdet(V)[1])), 3.0 * float(np.sum(np.log(p)))
         Wm = W.reshape(self.layout.size, 3 * n)
         if self.prior.kind == 'block':
-            Vinv = np.linalg.inv(Vb + self.prior.block_precision())
+            V = Vb + self.prior.block_precision()
+            Vinv = np.linalg.inv(V)
             WVi = np.einsum('pnk,nkl->pnl', W, Vinv).reshape(self.layout.size, 3 * n)
-            return U - WVi @ Wm.T
+            ps2 = self.prior.settings.point_sigma ** 2
+            return (U - WVi @ Wm.T, float(np.sum(np.linalg.slogdet(V)[1])),
+                    -3.0 * n * np.log(ps2))
         V = self.P_dense.copy()
         ii = np.arange(n)
         for a in range(3):
             for b in range(3):
                 V[3 * ii + a, 3 * ii + b] += Vb[:, a, b]
         F = cho_factor(V, lower=True, check_finite=False)
-        return U - Wm @ cho_solve(F, Wm.T, check_finite=False)
+        logdet_v = 2.0 * float(np.sum(np.log(np.diag(F[0]))))
+        logdet_p = -3.0 * 2.0 * float(np.sum(np.log(np.diag(self.prior._chol[0]))))
+        return U - Wm @ cho_solve(F, Wm.T, check_finite=False), logdet_v, logdet_p
 
-    def step(self, cams, X, dc, dx):
+    def step(self, cams, X, dc, dx, g=None, dg=None):
         pc = self.layout.per_camera
         new_cams = [_apply_camera_step(c, dc[j * pc:(j + 1) * pc], self.layout)
                     for j, c in enumerate(cams)]
         new_X = X + dx if dx is not None else X
-        return new_cams, new_X
+        new_g = g + dg if dg is not None and dg.size else g
+        return new_cams, new_X, new_g
 
 
 def _spd_solve(A, b):
@@ -376,27 +504,28 @@ def _scaled_norm(cams, X, dc, dx, layout):
     return rel
 
 
-def _levenberg_marquardt(problem: _Problem, cams, X):
+def _levenberg_marquardt(problem: _Problem, cams, X, g):
     s = problem.s
     lam = s.initial_lambda
     nu = 2.0
-    cost = problem.cost(cams, X)
+    cost = problem.cost(cams, X, g)
     initial = cost
     status, message = 'max_iterations', f'reached max_iterations={s.max_iterations}'
     it = 0
     for it in range(1, s.max_iterations + 1):
-        U, g_c, W, Vb, g_x = problem.normal_equations(cams, X)
-        if problem.scaled_gradient(U, g_c, Vb, g_x) < s.gtol * np.sqrt(max(cost, 1e-300)):
+        U, g_c, W, Vb, g_x, g_g = problem.normal_equations(cams, X, g)
+        if problem.scaled_gradient(U, g_c, Vb, g_x, g_g) < \
+                s.gtol * np.sqrt(max(cost, 1e-300)):
             status, message = 'converged', 'scaled gradient below gtol'
             it -= 1
             break
         accepted = False
         for _ in range(30):
-            dc, dx = problem.solve_step(U, g_c, W, Vb, g_x, lam)
-            new_cams, new_X = problem.step(cams, X, dc, dx)
-            new_cost = problem.cost(new_cams, new_X)
+            dc, dx, dg = problem.solve_step(U, g_c, W, Vb, g_x, lam, g_g)
+            new_cams, new_X, new_g = problem.step(cams, X, dc, dx, g, dg)
+            new_cost = problem.cost(new_cams, new_X, new_g)
             # Predicted decrease of the Gauss-Newton model, for the gain ratio.
-            pred = -(dc @ g_c)
+            pred = -(dc @ g_c) - float(dg @ g_g)
             if dx is not None:
                 pred -= float(np.sum(dx * g_x))
             actual = cost - new_cost
@@ -412,15 +541,18 @@ def _levenberg_marquardt(problem: _Problem, cams, X):
             status, message = 'converged', 'no step decreases the cost (at a minimum)'
             break
         rel_step = _scaled_norm(cams, X, dc, dx, problem.layout)
+        if dg.size:
+            rel_step = max(rel_step, float(np.max(np.abs(dg))) /
+                           max(float(np.max(np.abs(g))), 1.0))
         rel_decrease = (cost - new_cost) / max(cost, 1e-300)
-        cams, X, cost = new_cams, new_X, new_cost
+        cams, X, g, cost = new_cams, new_X, new_g, new_cost
         if rel_decrease < s.ftol:
             status, message = 'converged', f'relative cost decrease {rel_decrease:.2e} < ftol'
             break
         if rel_step < s.xtol:
             status, message = 'converged', f'relative step {rel_step:.2e} < xtol'
             break
-    return cams, X, cost, initial, it, status, message
+    return cams, X, g, cost, initial, it, status, message
 
 
 def _robust_sigma(d):
@@ -430,12 +562,17 @@ def _robust_sigma(d):
 
 def adjust(cameras: Sequence[Camera], measured, obs: Observations,
            prior_settings: PriorSettings = None, settings: SolverSettings = None,
-           points_init=None, inliers=None) -> AdjustmentResult:
+           points_init=None, inliers=None, kinematics=None, globals_init=None,
+           prior: Optional[PointPrior] = None) -> AdjustmentResult:
     """
     Adjust ``cameras`` (initial estimates) and the points under the chosen prior.
 
     ``measured`` are the robot's points X^ (N, 3); ``obs`` index into ``cameras`` and the points.
     ``points_init`` (N, 3) warm-starts the points (default X^); ``inliers`` an initial mask.
+    ``kinematics`` (:class:`~armcal_ros.core.kinematic_prior.KinematicData`) is needed by the
+    'kinematic' and 'hybrid' models; ``globals_init`` warm-starts their global parameters (the
+    ``global_parameters`` of an earlier result with the same prior); ``prior`` passes a
+    prebuilt :class:`PointPrior` for these settings (to reuse its lattice).
     Returns an :class:`AdjustmentResult`; never raises on numerical failure (status 'failed').
     """
     t0 = time.perf_counter()
@@ -455,7 +592,15 @@ def adjust(cameras: Sequence[Camera], measured, obs: Observations,
     X = measured.copy() if points_init is None else np.array(points_init, float)
     if X.shape != measured.shape:
         raise ValueError(f'points_init must have shape {measured.shape}, got {X.shape}')
-    prior = PointPrior(measured, prior_settings)
+    if prior is None:
+        prior = PointPrior(measured, prior_settings, kinematics)
+    n_global = prior.n_global if prior.kind == 'global' else 0
+    g = np.zeros(n_global)
+    if globals_init is not None:
+        gi = np.asarray(globals_init, float).reshape(-1)
+        if gi.shape != (n_global,):
+            raise ValueError(f'globals_init must have shape ({n_global},), got {gi.shape}')
+        g = gi.copy()
     active = np.ones(len(obs), bool) if inliers is None else np.asarray(inliers, bool).copy()
 
     total_it = 0
@@ -466,7 +611,7 @@ def adjust(cameras: Sequence[Camera], measured, obs: Observations,
         rounds = max(1, settings.max_gate_rounds + 1)
         for k in range(rounds):
             problem = _Problem(cams, measured, obs, prior, settings, active)
-            cams, X, cost, c0, it, status, message = _levenberg_marquardt(problem, cams, X)
+            cams, X, g, cost, c0, it, status, message = _levenberg_marquardt(problem, cams, X, g)
             initial_cost = c0 if initial_cost is None else initial_cost
             total_it += it
             d = _all_residual_norms(cams, X, obs)
@@ -475,23 +620,55 @@ def adjust(cameras: Sequence[Camera], measured, obs: Observations,
             if np.array_equal(new_active, active) or k == rounds - 1:
                 break
             active = new_active
-        problem = _Problem(cams, measured, obs, prior, settings, active)
-        S = problem.reduced_matrix(cams, X)
-        cov = _safe_inverse(S)
+            problem = None
+        if problem is None or not np.array_equal(problem.active, active):
+            problem = _Problem(cams, measured, obs, prior, settings, active)
+        S, logdet_v, logdet_p = problem.reduced_and_logdet(cams, X, g)
+        full_cov = _safe_inverse(S)
+        log_evidence = _laplace_evidence(cost, S, logdet_v, logdet_p)
     except (LinAlgError, FloatingPointError, ValueError) as exc:
         return AdjustmentResult(False, 'failed', f'numerical failure: {exc}', float('nan'),
                                 float('nan') if initial_cost is None else initial_cost,
                                 total_it, time.perf_counter() - t0,
                                 {c.name: CameraEstimate(c, status='failed', message=str(exc))
                                  for c in cams}, X, active, prior_settings.model)
+    C = problem.layout.size
+    cov = full_cov[:C, :C]
     names = problem.layout.names([c.name for c in cams])
     estimates = _camera_estimates(cams, obs, X, active, cov, problem.layout)
     ok = status == 'converged' and np.all(np.isfinite(cov.diagonal()))
-    return AdjustmentResult(
+    result = AdjustmentResult(
         success=bool(ok), status=status, message=message, cost=float(cost),
         initial_cost=float(initial_cost), iterations=total_it,
         time_s=time.perf_counter() - t0, cameras=estimates, points=X, inliers=active,
-        model=prior_settings.model, covariance=cov, parameter_names=names, gate_px=gate)
+        model=prior_settings.model, covariance=cov, parameter_names=names, gate_px=gate,
+        log_evidence=log_evidence, prior=prior, prior_settings=prior_settings)
+    if n_global:
+        result.global_parameters = g
+        result.global_covariance = full_cov[C:, C:]
+        if 'kinematic' in prior.global_slices:
+            sl = prior.global_slices['kinematic']
+            sig = prior.kinematics.sigma * prior_settings.kinematic_scale
+            std = np.sqrt(np.maximum(np.diag(full_cov[C:, C:])[sl], 0.0)) * sig
+            result.kinematic_errors = dict(zip(prior.kinematics.names, g[sl] * sig))
+            result.kinematic_std = dict(zip(prior.kinematics.names, std))
+    return result
+
+
+def _laplace_evidence(cost, S, logdet_v, logdet_p):
+    """
+    Laplace approximation of log p(images, robot points | model), up to a model-free constant.
+
+    log Z = -F/2 - (log det V + log det S)/2 + (log det P)/2: F the objective at the optimum,
+    V the eliminated point block and S the reduced (camera, global) matrix - together the
+    Hessian of F/2 - and P the prior precision of the points and globals (the pixel-noise
+    normaliser and the flat camera prior are the same for every model and dropped).  The
+    ``fixed`` model is the limit of vanishing point sigma and has only -F/2 - log det S / 2.
+    """
+    sign, logdet_s = np.linalg.slogdet(S)
+    if sign <= 0:
+        return float('nan')
+    return float(-0.5 * cost - 0.5 * (logdet_v + logdet_s) + 0.5 * logdet_p)
 
 
 def _all_residual_norms(cams, X, obs):

@@ -18,6 +18,21 @@ positive definite (0.02 mm was enough in double precision).
 A prior enters the objective as the quadratic (X - X^)^T P (X - X^) with precision P = Cov^-1;
 the solver needs only P, either as N 3x3 blocks (``block_precision``) or dense
 (``scalar_precision``, the N x N factor of the Kronecker product).
+
+Beyond the paper (DESIGN.md section 3), priors with global parameters g ~ N(0, I)::
+
+    X_i = X^_i + A_i g + e_i,   e_i ~ N(0, s_i^2 I)
+
+(kind ``global``; :mod:`armcal_ros.core.field`, :mod:`armcal_ros.core.kinematic_prior`):
+
+    kinematic    A_i = J_p(q_i) diag(sigma_p): the arm's kinematic error parameters
+    correlated   (scalable form, ``field_form`` 'lattice', or 'auto' above
+                 ``exact_max_points``) A_i = trilinear weights x whitened lattice covariance,
+                 s_i^2 = s_n^2 + the variance the lattice misses at X^_i
+    hybrid       both designs side by side
+
+The solver keeps g next to the cameras in the reduced system; the points stay 3x3 blocks.
+``auto`` is not a prior but a request to choose one (:mod:`armcal_ros.core.model_selection`).
 """
 
 from dataclasses import dataclass
@@ -26,7 +41,10 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
 KERNELS = ('squared_exponential', 'exponential', 'matern32')
-NOISE_MODELS = ('fixed', 'independent', 'correlated')
+NOISE_MODELS = ('fixed', 'independent', 'correlated', 'kinematic', 'hybrid', 'auto')
+FIELD_FORMS = ('auto', 'exact', 'lattice')
+#: Models that need joint angles (the kinematic Jacobian).
+KINEMATIC_MODELS = ('kinematic', 'hybrid')
 
 
 def kernel_function(d, coherence_length, kernel='squared_exponential'):
@@ -59,6 +77,11 @@ class PriorSettings:
     Hyperparameters of the point prior.
 
     point_sigma is s_n (metres), bias_sigma s_b (metres), coherence_length L (metres).
+    field_form chooses the exact (dense, O(N^3)) or lattice (O(N)) form of the correlated
+    field; 'auto' takes the exact one up to ``exact_max_points`` points (the lattice is always
+    used by ``hybrid``).  lattice_spacing is the lattice spacing as a fraction of L,
+    lattice_max_nodes caps the lattice (the spacing widens beyond it).  kinematic_scale
+    multiplies every kinematic prior sigma (``KinematicData.sigma``).
     """
 
     model: str = 'correlated'
@@ -66,6 +89,11 @@ class PriorSettings:
     bias_sigma: float = 0.001
     coherence_length: float = 0.3
     kernel: str = 'squared_exponential'
+    field_form: str = 'auto'
+    exact_max_points: int = 600
+    lattice_spacing: float = 0.5
+    lattice_max_nodes: int = 1200
+    kinematic_scale: float = 1.0
 
     def validate(self):
         """Raise ValueError naming the first bad field."""
@@ -76,7 +104,13 @@ class PriorSettings:
         if self.model != 'fixed' and not self.point_sigma > 0:
             raise ValueError(f'point_sigma must be > 0 for the {self.model} model, '
                              f'got {self.point_sigma}')
-        if self.model == 'correlated':
+        if self.field_form not in FIELD_FORMS:
+            raise ValueError(f'field_form must be one of {FIELD_FORMS}, got {self.field_form!r}')
+        if not self.kinematic_scale >= 0:
+            raise ValueError(f'kinematic_scale must be >= 0, got {self.kinematic_scale}')
+        if not 0 < self.lattice_spacing <= 2:
+            raise ValueError(f'lattice_spacing must be in (0, 2], got {self.lattice_spacing}')
+        if self.model in ('correlated', 'hybrid'):
             if not self.bias_sigma >= 0:
                 raise ValueError(f'bias_sigma must be >= 0, got {self.bias_sigma}')
             if not self.coherence_length > 0:
@@ -88,11 +122,17 @@ class PointPrior:
     """
     Gaussian prior on the points: cost (X - X^)^T P (X - X^).
 
-    ``kind`` is 'fixed' (points are not unknowns), 'block' (P is N 3x3 blocks) or 'dense'.
+    ``kind`` is 'fixed' (points are not unknowns), 'block' (P is N 3x3 blocks), 'dense', or
+    'global' (X = X^ + A g + e with ``design`` A, g ~ N(0, I), e_i ~ N(0, I / precision_i);
+    cost sum_i precision_i |X_i - X^_i - A_i g|^2 + |g|^2).  ``kinematics`` is a
+    :class:`~armcal_ros.core.kinematic_prior.KinematicData`, needed by 'kinematic' and 'hybrid'.
     """
 
-    def __init__(self, measured, settings: PriorSettings):
+    def __init__(self, measured, settings: PriorSettings, kinematics=None):
         settings.validate()
+        if settings.model == 'auto':
+            raise ValueError("noise_model 'auto' is a model choice, not a prior: use "
+                             'calibrate() or model_selection.select_model()')
         self.settings = settings
         self.measured = np.asarray(measured, float)
         if self.measured.ndim != 2 or self.measured.shape[1] != 3:
@@ -100,8 +140,24 @@ class PointPrior:
         n = self.measured.shape[0]
         self.n = n
         model = settings.model
+        self.design = None
+        self.field = None
+        self.kinematics = None
+        self.lattice = (model == 'hybrid' or (model == 'correlated' and (
+            settings.field_form == 'lattice' or
+            (settings.field_form == 'auto' and n > settings.exact_max_points))))
+        if model in KINEMATIC_MODELS:
+            if kinematics is None:
+                raise ValueError(f'the {model} model needs kinematics (the per-point kinematic '
+                                 'Jacobian from joint angles); pose input cannot use it')
+            if kinematics.n != n:
+                raise ValueError(f'kinematics.jacobian has {kinematics.n} points, measured '
+                                 f'has {n}')
+            self.kinematics = kinematics
         if model == 'fixed':
             self.kind = 'fixed'
+        elif model in KINEMATIC_MODELS or (self.lattice and settings.bias_sigma > 0):
+            self._init_global(settings, kinematics)
         elif model == 'independent' or (model == 'correlated' and settings.bias_sigma == 0):
             self.kind = 'block'
             self._blocks = np.broadcast_to(np.eye(3) / settings.point_sigma ** 2, (n, 3, 3))
@@ -113,6 +169,42 @@ class PointPrior:
             self._chol = cho_factor(K, lower=True)
             # K^-1 (N x N); the 3N x 3N precision is K^-1 (x) I_3.
             self._kinv = cho_solve(self._chol, np.eye(n))
+
+    def _init_global(self, settings, kinematics):
+        from armcal_ros.core.field import DenseDesign, LatticeField, StackedDesign
+        self.kind = 'global'
+        parts = []
+        if kinematics is not None:
+            parts.append(DenseDesign(kinematics.whitened_design(settings.kinematic_scale)))
+        var = np.full(self.n, settings.point_sigma ** 2)
+        if self.lattice and settings.bias_sigma > 0:
+            self.field = LatticeField(self.measured, settings.bias_sigma,
+                                      settings.coherence_length, settings.kernel,
+                                      settings.lattice_spacing, settings.lattice_max_nodes)
+            parts.append(self.field)
+            var = var + self.field.missing_variance
+        self.design = StackedDesign(parts) if parts else None
+        self.n_global = self.design.size if parts else 0
+        self.precision = 1.0 / var
+        # Which slice of g is what (for reporting).
+        self.global_slices = {}
+        if self.design is not None:
+            names = (['kinematic'] if kinematics is not None else []) + \
+                (['field'] if self.field is not None else [])
+            for k, nm in enumerate(names):
+                self.global_slices[nm] = slice(int(self.design.offsets[k]),
+                                               int(self.design.offsets[k + 1]))
+
+    def global_offsets(self, g):
+        """Return A g (N, 3): the prior's predicted correction of the measured points."""
+        if self.kind != 'global' or self.design is None:
+            return np.zeros_like(self.measured)
+        return self.design.apply(g)
+
+    def global_cost(self, X, g):
+        """Return sum_i precision_i |X_i - X^_i - A_i g|^2 + |g|^2 (kind 'global')."""
+        D = np.asarray(X, float) - self.measured - self.global_offsets(g)
+        return float(np.sum(self.precision * np.sum(D * D, axis=1)) + g @ g)
 
     def block_precision(self):
         """Precision as (N, 3, 3) blocks (kind 'block' only)."""
