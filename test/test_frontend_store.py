@@ -186,5 +186,6 @@ def test_load_errors(tmp_path):
     store.save(str(tmp_path))
     with pytest.raises(ValueError, match='bogus'):
         SampleStore.load(str(tmp_path), bogus=1)
-    smaller = SampleStore.load(str(tmp_path), max_samples=5)
+    smaller = SampleStore.load(str(tmp_path), max_samples=5, min_sample_spacing=0.0001)
     assert smaller.max_samples == 5 and len(smaller) == 1
+    assert smaller.same_point_tolerance == 0.0001            # clamped to the new spacing

@@ -357,6 +357,9 @@ class SampleStore:
         if unknown:
             raise ValueError(f'unknown store parameter(s) {sorted(unknown)}')
         params.update(overrides)
+        if 'same_point_tolerance' not in overrides:
+            params['same_point_tolerance'] = min(params['same_point_tolerance'],
+                                                 params['min_sample_spacing'])
         store = cls(joint_names=joint_names if joint_names is not None else saved_joints,
                     **params)
         names = meta['camera_names']
