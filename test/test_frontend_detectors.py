@@ -250,3 +250,26 @@ def test_aruco_on_16_bit_and_colour(rng):
         dets = ArucoDetector('DICT_4X4_50').detect(image)
         assert len(dets) == 1 and np.linalg.norm(dets[0].uv - centre) < 0.3
     assert ArucoDetector('DICT_4X4_50').detect(np.zeros(SHAPE, np.uint8)) == []
+
+
+def test_sphere_on_the_simulators_frames():
+    """Frames rendered by the simulator (sensor noise, blur, vignetting, glints, occlusion)."""
+    from armcal_ros.sim.cell import simulate_cell
+    res = simulate_cell('geometric', seed=3, duration=6.0)
+    f = res.frames
+    detectors = {}
+    errors, wrong, visible = [], 0, 0
+    for i in range(min(len(f), 120)):
+        det = detectors.setdefault(int(f.camera[i]), SphereDetector())
+        dets = det.detect(res.render(i))
+        if not f.visible[i]:
+            continue
+        visible += 1
+        if dets:
+            e = np.linalg.norm(dets[0].uv - f.uv[i])
+            wrong += e > 1.0
+            errors.append(e)
+    assert visible > 50
+    assert len(errors) >= 0.95 * visible
+    assert wrong == 0
+    assert np.median(errors) < 0.05
