@@ -1,0 +1,153 @@
+"""
+``armcal calibrate`` end to end on simulated rosbag2 bags, checked against the ground truth.
+
+One 60 s simulated bag (about 35 dwells, three cameras) is made per session.  Tolerances are set
+from what 35 points with 0.5 px detections and a ~1 mm robot bias can pin down (bench/solver.py:
+about 1 % focal and 10-20 mm centre error at N = 100): focal within 3 %, camera centres within
+40 mm, triangulation of the workspace within 3 mm absolute and 1 mm in shape.  They are loose
+enough for every seed and tight enough that a wrong sign, a swapped camera, a mis-paired
+timestamp (tens of mm at arm speed) or a wrong marker offset fails them.
+"""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+
+from armcal_ros.compare import compare
+from armcal_ros.io.bag import BagWriter, iter_raw, jazzy_typestore
+from armcal_ros.io.calib_files import read_cameras
+from armcal_ros.offline import calibrate_bag, CalibrateError
+from armcal_ros.params import load_params_file
+from armcal_ros.sim.cell import simulate_cell
+from armcal_ros.sim.output import write_sim_bag
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture(scope='module')
+def sim_bag(tmp_path_factory):
+    d = tmp_path_factory.mktemp('sim')
+    bag = d / 'bag'
+    write_sim_bag(simulate_cell('geometric', seed=3, duration=60.0), bag)
+    params = d / 'params.yaml'
+    params.write_text('armcal:\n  ros__parameters:\n'
+                      f'    robot_description_file: {ROOT}/urdf/puma560.urdf\n'
+                      '    marker_link: marker\n    min_samples: 15\n')
+    return bag, params
+
+
+def _copy_bag(src, dst, edit):
+    """Copy a bag message by message; ``edit(raw) -> bytes or None`` (None drops it)."""
+    with BagWriter(dst) as w:
+        for raw in iter_raw(src):
+            data = edit(raw)
+            if data is not None:
+                w.write_raw(raw.topic, raw.msgtype, raw.t_ns, data)
+
+
+def _check_against_truth(out_dir, gt_dir, names=('cam1', 'cam2', 'cam3')):
+    _, cams = read_cameras(out_dir)
+    est = {c.name: c for c in cams}
+    assert sorted(est) == sorted(names)
+    score = compare(est, gt_dir)
+    for name in names:
+        assert score.per_camera[name]['focal_pct'] < 3.0, (name, score.per_camera[name])
+        assert score.per_camera[name]['centre_mm'] < 40.0, (name, score.per_camera[name])
+    assert score.absolute_mm < 3.0 and score.shape_mm < 1.0, score
+    return score
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('model', ['fixed', 'independent', 'correlated'])
+def test_cli_calibrates_each_noise_model_close_to_truth(sim_bag, tmp_path, model):
+    bag, params = sim_bag
+    out = tmp_path / 'out'
+    proc = subprocess.run([sys.executable, '-m', 'armcal_ros.cli', 'calibrate', str(bag),
+                           '--params', str(params), '--output', str(out), '--noise-model',
+                           model, '--quiet'], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert f'noise model {model}' in proc.stdout and 'cam3' in proc.stdout
+    report = json.loads((out / 'report.json').read_text())
+    assert report['noise_model'] == model and report['accepted']
+    for c in report['cameras'].values():
+        assert c['rms_px'] < 1.0 and c['n_inliers'] >= 0.9 * c['n_observations']
+        assert c['std']['fx'] > 0
+    _check_against_truth(out, bag / 'ground_truth')
+
+
+def test_missing_camera_topic_is_reported_and_others_calibrate(sim_bag, tmp_path):
+    bag, params = sim_bag
+    cut = tmp_path / 'no_cam3'
+    _copy_bag(bag, cut, lambda r: None if r.topic == '/cam3/image_raw' else r.rawdata)
+    logs = []
+    res = calibrate_bag(cut, load_params_file(params), tmp_path / 'out', log=logs.append)
+    assert any('cam3' in w and 'no messages' in w for w in res.warnings)
+    assert any('cam3' in m for m in logs)
+    assert res.report['cameras']['cam3']['status'] == 'not calibrated'
+    _check_against_truth(tmp_path / 'out', bag / 'ground_truth', names=('cam1', 'cam2'))
+
+
+def test_corrupt_messages_are_counted_and_skipped(sim_bag, tmp_path):
+    bag, params = sim_bag
+    bad = tmp_path / 'corrupt'
+    n = {'i': 0}
+
+    def edit(raw):
+        n['i'] += 1
+        if n['i'] % 97 == 0:
+            return raw.rawdata[:len(raw.rawdata) // 3]      # truncated CDR
+        return raw.rawdata
+    _copy_bag(bag, bad, edit)
+    res = calibrate_bag(bad, load_params_file(params), tmp_path / 'out')
+    assert res.report['front_end']['corrupt_message'] >= 50
+    _check_against_truth(tmp_path / 'out', bag / 'ground_truth')
+
+
+def test_unknown_joint_names_are_counted_and_the_rest_used(sim_bag, tmp_path):
+    bag, params = sim_bag
+    ts = jazzy_typestore()
+    bad = tmp_path / 'renamed'
+    n = {'i': 0}
+
+    def edit(raw):
+        if raw.msgtype != 'sensor_msgs/msg/JointState':
+            return raw.rawdata
+        n['i'] += 1
+        if n['i'] % 10:
+            return raw.rawdata
+        msg = ts.deserialize_cdr(raw.rawdata, raw.msgtype)
+        msg.name = ['elbow_typo' if x == 'joint_3' else x for x in msg.name]
+        return bytes(ts.serialize_cdr(msg, raw.msgtype))
+    _copy_bag(bag, bad, edit)
+    res = calibrate_bag(bad, load_params_file(params), tmp_path / 'out')
+    rejected = sum(v for k, v in res.report['front_end'].items() if k.startswith('joint_state_'))
+    assert rejected >= 0.09 * n['i']
+    _check_against_truth(tmp_path / 'out', bag / 'ground_truth')
+
+
+def test_clear_errors_for_unusable_input(sim_bag, tmp_path):
+    bag, params = sim_bag
+    values = load_params_file(params)
+    values['joint_states_topic'] = '/arm/joint_states'
+    with pytest.raises(CalibrateError, match='/arm/joint_states'):
+        calibrate_bag(bag, values, tmp_path / 'out')
+    with pytest.raises(CalibrateError, match='cannot open bag'):
+        calibrate_bag(tmp_path / 'nothing', load_params_file(params), tmp_path / 'out')
+    proc = subprocess.run([sys.executable, '-m', 'armcal_ros.cli', 'calibrate', str(bag),
+                           '--params', str(params), '--output', str(tmp_path / 'o'),
+                           '--noise-model', 'magic'], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode != 0 and 'noise_model' in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_bag_is_real_rosbag2(sim_bag):
+    bag, _ = sim_bag
+    with AnyReader([bag], default_typestore=jazzy_typestore()) as reader:
+        topics = {c.topic for c in reader.connections}
+    assert {'/joint_states', '/cam1/image_raw'} <= topics
+    assert np.load(bag / 'ground_truth' / 'markers.npz')['dwell_true'].shape[0] >= 20
