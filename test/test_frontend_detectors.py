@@ -112,6 +112,14 @@ def test_two_equal_spheres_are_ambiguous_unless_tracked(rng):
     dets = det.detect(both)
     assert len(dets) == 1 and np.linalg.norm(dets[0].uv - (500.0, 350.0)) < 0.2
     assert det.last_status == 'tracked'
+    # A comparable highlight inside the search window: the blob at the previous position is
+    # kept, flagged by a low quality; without a previous position the frame is ambiguous.
+    near = render_sphere((500.0, 350.0), 6.0)
+    near = quantise(render_sphere((525.0, 340.0), 6.0, amp=200, bg=0.0, image=near), rng)
+    dets = det.detect(near)
+    assert len(dets) == 1 and np.linalg.norm(dets[0].uv - (500.0, 350.0)) < 0.2
+    assert det.last_status == 'tracked_ambiguous' and dets[0].quality < 0.2
+    assert SphereDetector().detect(near) == []
 
 
 def test_tracking_falls_back_to_the_whole_image(rng):

@@ -137,17 +137,24 @@ class SphereDetector(Detector):
     point with a good quality would poison the calibration, a missing one costs a frame.
     Tracking resolves most such cases before they arise: when the previous frame gave a
     detection, only a window of half-size ``search_window_px`` around it is searched first, so
-    a highlight elsewhere in the image is never considered; the whole image is searched when
-    the window yields nothing unambiguous or the blob touches the window edge.
+    a highlight elsewhere in the image is never considered; within the window, of comparable
+    candidates the one within ``track_radius_px`` of the previous position is taken if it is
+    the only one there (``last_status = 'tracked_ambiguous'``, with a low quality).  The
+    whole image is searched when the window yields nothing or the blob touches the window
+    edge.
 
-    ``quality = roundness * (1 - runner_up_score / best_score)`` (1 for a perfectly round,
-    unique blob).  Sub-pixel accuracy comes from the background-subtracted intensity-weighted
-    centroid: ~0.01-0.05 px on rendered spheres with a few DN of noise.
+    ``quality = roundness * max(0, 1 - competitor_score / chosen_score)`` (1 for a perfectly
+    round, unique blob; near 0 when a comparable competitor was set aside by tracking).
+
+    Sub-pixel accuracy comes from the background-subtracted intensity-weighted centroid:
+    ~0.01 px on rendered spheres with a few DN of noise, 0.007 px median on the simulator's
+    frames.
     """
 
     def __init__(self, min_radius_px=1.5, max_radius_px=40.0, blur_sigma_px=1.0, k_sigma=6.0,
                  min_contrast=0.03, min_roundness=0.7, ambiguity_ratio=0.5,
-                 search_window_px=48.0, white_level=None, max_candidates=32):
+                 search_window_px=48.0, track_radius_px=3.0, white_level=None,
+                 max_candidates=32):
         self.min_radius_px = _check_positive('min_radius_px', min_radius_px)
         self.max_radius_px = _check_positive('max_radius_px', max_radius_px)
         if self.max_radius_px <= self.min_radius_px:
@@ -162,6 +169,7 @@ class SphereDetector(Detector):
         self.ambiguity_ratio = _check_fraction('ambiguity_ratio', ambiguity_ratio)
         self.search_window_px = _check_positive('search_window_px', search_window_px,
                                                 allow_zero=True)
+        self.track_radius_px = _check_positive('track_radius_px', track_radius_px)
         self.white_level = None if white_level is None else _check_positive('white_level',
                                                                             white_level)
         if int(max_candidates) != max_candidates or max_candidates < 2:
@@ -195,9 +203,10 @@ class SphereDetector(Detector):
             x0, y0 = max(0, int(u - half)), max(0, int(v - half))
             x1, y1 = min(w, int(u + half) + 1), min(h, int(v + half) + 1)
             if x1 - x0 > 4 and y1 - y0 > 4 and (x1 - x0) * (y1 - y0) < h * w:
-                det, status = self._detect_region(gray, x0, y0, x1, y1, white)
+                prefer = self.last_uv - (x0, y0)
+                det, status = self._detect_region(gray, x0, y0, x1, y1, white, prefer)
                 if det is not None:
-                    return self._accept(det, 'tracked')
+                    return self._accept(det, 'tracked' if status == 'ok' else status)
         det, status = self._detect_region(gray, 0, 0, w, h, white)
         if det is None:
             self.last_status = status
@@ -210,7 +219,7 @@ class SphereDetector(Detector):
         self.last_status = status
         return [det]
 
-    def _detect_region(self, gray, x0, y0, x1, y1, white):
+    def _detect_region(self, gray, x0, y0, x1, y1, white, prefer=None):
         sub = np.ascontiguousarray(gray[y0:y1, x0:x1])
         bg, noise = self._background(sub)
         threshold = bg + max(self.k_sigma * noise * self._blur_noise_gain,
@@ -245,15 +254,24 @@ class SphereDetector(Detector):
             return None, 'rejected' if order.size else 'none'
         candidates.sort(key=lambda c: -c.score)
         best = candidates[0]
+        status = 'ok'
         second = candidates[1].score / best.score if len(candidates) > 1 else 0.0
         if second >= self.ambiguity_ratio:
-            return None, 'ambiguous'
+            comparable = [c for c in candidates if c.score >= self.ambiguity_ratio * best.score]
+            near = [] if prefer is None else [
+                c for c in comparable
+                if np.linalg.norm(c.uv - prefer) <= self.track_radius_px]
+            if len(near) != 1:
+                return None, 'ambiguous'
+            chosen = near[0]
+            rival = max(c.score for c in candidates if c is not chosen)
+            best, second, status = chosen, rival / chosen.score, 'tracked_ambiguous'
         if best.touches_edge:
             return None, 'window_edge'
         uv = best.uv + (x0, y0)
-        det = Detection(uv=uv, id=0, quality=float(best.roundness * (1.0 - second)),
+        det = Detection(uv=uv, id=0, quality=float(best.roundness * max(0.0, 1.0 - second)),
                         radius_px=float(best.radius))
-        return det, 'ok'
+        return det, status
 
     _COARSE = 4
     _COARSE_MIN_PIXELS = 160 * 120
