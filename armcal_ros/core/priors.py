@@ -157,7 +157,7 @@ class PointPrior:
         if model == 'fixed':
             self.kind = 'fixed'
         elif model in KINEMATIC_MODELS or (self.lattice and settings.bias_sigma > 0):
-            self._init_global(settings, kinematics)
+            self._init_global(settings, self.kinematics)
         elif model == 'independent' or (model == 'correlated' and settings.bias_sigma == 0):
             self.kind = 'block'
             self._blocks = np.broadcast_to(np.eye(3) / settings.point_sigma ** 2, (n, 3, 3))

@@ -1,0 +1,131 @@
+"""
+Point-level calibration problems from a simulated arm: joint angles, true and nominal markers.
+
+The cell simulator (:mod:`armcal_ros.sim.cell`) renders images and writes bags; this module keeps
+only its geometry, for the estimator's tests and benchmarks: the same cameras ring, the same true
+robot (:mod:`armcal_ros.sim.true_robot`, scenarios of :data:`armcal_ros.sim.cell.SCENARIOS` with
+the same error magnitudes), configurations drawn uniformly over the joint ranges a teleoperated
+arm uses, kept when the nominal marker lies in the workspace box and projects inside every image
+(with a margin), and observations where the arm's links do not hide the marker.  The robot's
+measurement of a point is the nominal forward kinematics, X^ = FK_nominal(q); the cameras see the
+true marker plus pixel noise.  Test points for scoring are fresh true markers from fresh
+configurations.
+"""
+
+from dataclasses import dataclass
+from typing import List, Optional
+
+import numpy as np
+
+from armcal_ros.core.adjustment import Observations
+from armcal_ros.core.kinematic_prior import KinematicData
+from armcal_ros.sim.bias_field import FourierBiasField
+from armcal_ros.sim.cameras import ring_of_cameras
+from armcal_ros.sim.cell import (_load_chain, link_occluded, SCENARIOS, SimSettings)
+from armcal_ros.sim.synthetic import SyntheticProblem
+from armcal_ros.sim.true_robot import (draw_compliance, draw_geometric_errors, draw_periodic,
+                                       TrueRobot)
+
+
+@dataclass
+class RobotProblem(SyntheticProblem):
+    """A :class:`SyntheticProblem` with the arm behind it: joint readings and the Jacobian."""
+
+    q: Optional[np.ndarray] = None
+    kinematics: Optional[KinematicData] = None
+    robot: Optional[TrueRobot] = None
+    scenario: str = ''
+    test_q: Optional[np.ndarray] = None
+
+
+def build_true_robot(chain, scenario, rng, s: SimSettings, q_sample, field=None):
+    """
+    The true robot of ``scenario`` (draws in the cell simulator's order and magnitudes).
+
+    ``field`` overrides the scenario's bias field as (sigma m, coherence length m) or None.
+    """
+    if scenario not in SCENARIOS:
+        raise ValueError(f'scenario must be one of {sorted(SCENARIOS)}, got {scenario!r}')
+    geometric, nongeometric, field_spec = SCENARIOS[scenario]
+    if field is not None:
+        field_spec = field
+    n = chain.n_joints
+    e = draw_geometric_errors(chain, rng, s.offset_deg, s.translation_mm, s.rotation_deg,
+                              s.tip_translation_mm)
+    a, p = draw_periodic(chain, rng, s.periodic_deg)
+    c = draw_compliance(chain, rng, q_sample, s.compliance_deg)
+    field_rng = np.random.default_rng(rng.integers(2 ** 63))
+    errors = e if geometric else np.zeros(chain.n_errors)
+    amp, phase, comp = (a, p, c) if nongeometric else (np.zeros((n, 2)), np.zeros((n, 2)),
+                                                          np.zeros(n))
+    bias = FourierBiasField(field_spec[0], field_spec[1], field_rng) if field_spec else None
+    return TrueRobot(chain, np.asarray(s.marker_offset, float), errors, amp, phase, comp, bias)
+
+
+def make_robot_problem(scenario='geometric', n_points=300, seed=0, n_test=500,
+                       pixel_sigma=0.3, settings: SimSettings = None, chain=None,
+                       occlusion=True, field=None) -> RobotProblem:
+    """
+    Draw a point-level problem of ``scenario`` with ``n_points`` robot points.
+
+    ``occlusion`` drops observations the arm's links hide (slower for very large N).
+    ``field`` overrides the scenario's bias field, (sigma, coherence length) in metres.
+    """
+    s = settings or SimSettings()
+    rng = np.random.default_rng(seed)
+    chain = chain or _load_chain(s)
+    n = chain.n_joints
+    if s.joint_range_deg is not None and len(s.joint_range_deg) == n:
+        lo, hi = np.radians(np.asarray(s.joint_range_deg, float)).T
+    else:
+        lo, hi = np.maximum(chain.lower, -np.pi), np.minimum(chain.upper, np.pi)
+    wmin, wmax = np.asarray(s.workspace_min, float), np.asarray(s.workspace_max, float)
+    point = np.asarray(s.marker_offset, float)
+    for _ in range(1000):
+        cams = ring_of_cameras(len(s.camera_names), 0.5 * (wmin + wmax), rng,
+                               distance=s.camera_distance, height=s.camera_height,
+                               width=s.image_width, height_px=s.image_height, focal=s.focal,
+                               names=list(s.camera_names))
+        if all(c.center[0] > s.camera_min_x for c in cams):
+            break
+    q_sample = rng.uniform(lo, hi, (500, n))
+    robot = build_true_robot(chain, scenario, rng, s, q_sample, field)
+
+    def draw(count):
+        qs: List[np.ndarray] = []
+        got = 0
+        while got < count:
+            cand = rng.uniform(lo, hi, (max(4 * (count - got), 200), n))
+            x = chain.fk(cand, point)
+            ok = np.all((x >= wmin) & (x <= wmax), axis=1)
+            for cam in cams:
+                uv = cam.project(x)
+                ok &= cam.in_front(x) & (uv[:, 0] >= s.image_margin) & \
+                    (uv[:, 0] <= cam.width - 1 - s.image_margin) & \
+                    (uv[:, 1] >= s.image_margin) & (uv[:, 1] <= cam.height - 1 - s.image_margin)
+            good = cand[ok][:count - got]
+            qs.append(good)
+            got += len(good)
+        return np.vstack(qs)
+
+    q = draw(n_points)
+    X = robot.marker(q)
+    measured = robot.nominal_marker(q)
+    ci, pi, uvs = [], [], []
+    for j, c in enumerate(cams):
+        uv = c.project(X)
+        vis = np.ones(n_points, bool)
+        if occlusion:
+            vis = ~link_occluded(chain, q, measured, c.center, s.link_radius,
+                                 s.occlusion_clearance)
+        idx = np.flatnonzero(vis)
+        ci.append(np.full(idx.size, j))
+        pi.append(idx)
+        uvs.append(uv[idx] + rng.normal(0.0, pixel_sigma, (idx.size, 2)))
+    obs = Observations(np.concatenate(ci), np.concatenate(pi), np.vstack(uvs))
+    test_q = draw(n_test)
+    test = robot.marker(test_q)
+    kin = KinematicData(chain.jacobian_errors(q, point), chain.error_names)
+    meta = dict(n_points=n_points, seed=seed, scenario=scenario, pixel_sigma=pixel_sigma)
+    return RobotProblem(cams, X, measured, measured - X, obs, test, meta, q=q, kinematics=kin,
+                        robot=robot, scenario=scenario, test_q=test_q)
