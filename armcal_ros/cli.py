@@ -9,6 +9,8 @@ user can fix end the command with a one-line reason on stderr and a non-zero sta
 import argparse
 import sys
 
+from armcal_ros.ros.replay import add_arguments as _add_replay, run as _run_replay
+
 
 # ---- simulate ---------------------------------------------------------------------------
 
@@ -62,6 +64,8 @@ def _run_simulate(args):
 SUBCOMMANDS = {
     'simulate': ('simulate a calibration cell into a rosbag2 bag with ground truth',
                  _add_simulate, _run_simulate),
+    'replay': ('publish a bag\'s messages with their timing (like ros2 bag play) to drive the '
+               'node', _add_replay, _run_replay),
 }
 
 
