@@ -190,7 +190,7 @@ def test_frames_before_history_and_stale():
 
 
 def test_time_jump_drops_frames_of_the_old_timeline():
-    pairer = FramePairer(JOINTS, fk)
+    pairer = FramePairer(JOINTS, fk, batch_ns=0)
     dwell_then_move(pairer, t0_ms=10_000, t1_ms=11_000)
     assert pairer.add_frame('c', 12_500 * MS) == []           # waits for t + W
     status, ready = pairer.add_joint_state(0, JOINTS, [0.2, 0.9])
@@ -204,7 +204,7 @@ def test_time_jump_drops_frames_of_the_old_timeline():
 
 
 def test_gap_in_joint_states_refuses_the_frame():
-    pairer = FramePairer(JOINTS, fk, max_gap_ns=50 * MS)
+    pairer = FramePairer(JOINTS, fk, max_gap_ns=50 * MS, batch_ns=0)
     pairer.add_joint_state(0, JOINTS, [0.2, 0.9])
     pairer.add_joint_state(10 * MS, JOINTS, [0.2, 0.9])
     pairer.add_joint_state(200 * MS, JOINTS, [0.2, 0.9])
@@ -329,7 +329,7 @@ def test_with_the_robot_model():
     urdf = os.path.join(os.path.dirname(__file__), '..', 'urdf', 'puma560.urdf')
     chain = KinematicChain.from_file(urdf, tip_link='tool0')
     offset = np.array([0.0, 0.0, 0.05])
-    pairer = FramePairer(chain.joint_names, lambda Q: chain.fk(Q, point=offset))
+    pairer = FramePairer(chain.joint_names, lambda Q: chain.fk(Q, point=offset), batch_ns=0)
     q0 = np.linspace(0.1, 0.6, chain.n_joints)
     names = list(reversed(chain.joint_names))
     for k in range(20):
@@ -338,3 +338,19 @@ def test_with_the_robot_model():
     assert frame.status is PairStatus.STILL
     np.testing.assert_allclose(frame.q, q0)
     np.testing.assert_allclose(frame.point, chain.fk(q0[None], point=offset)[0])
+
+
+def test_frames_are_decided_in_batches():
+    """With batch_ns, frames wait until the oldest is batch_ns past its window, then go together."""
+    pairer = FramePairer(JOINTS, fk, batch_ns=100 * MS)
+    for k in range(20):
+        pairer.add_joint_state(k * 5 * MS, JOINTS, [0.2, 0.9])
+    assert pairer.add_frame('a', 30 * MS) == [] and pairer.add_frame('b', 40 * MS) == []
+    out = []
+    for k in range(20, 60):
+        out += pairer.add_joint_state(k * 5 * MS, JOINTS, [0.2, 0.9])[1]
+        if out:
+            break
+    assert k * 5 == 150, 'decided once the history reaches 30 + 20 + 100 ms'
+    assert [f.camera for f in out] == ['a', 'b']
+    assert all(f.status is PairStatus.STILL for f in out)
