@@ -341,7 +341,7 @@ def test_with_the_robot_model():
 
 
 def test_frames_are_decided_in_batches():
-    """With batch_ns, frames wait until the oldest is batch_ns past its window, then go together."""
+    """With batch_ns, frames wait until the oldest is batch_ns past its window, then go at once."""
     pairer = FramePairer(JOINTS, fk, batch_ns=100 * MS)
     for k in range(20):
         pairer.add_joint_state(k * 5 * MS, JOINTS, [0.2, 0.9])
