@@ -66,7 +66,14 @@ SUBCOMMANDS = {
                  _add_simulate, _run_simulate),
     'replay': ('publish a bag\'s messages with their timing (like ros2 bag play) to drive the '
                'node', _add_replay, _run_replay),
+    'calibrate': ('calibrate the cameras from a recorded rosbag2 bag (no ROS middleware needed)',
+                  lambda p: _offline().add_arguments(p), lambda a: _offline().run(a)),
 }
+
+
+def _offline():
+    from armcal_ros import offline
+    return offline
 
 
 def build_parser():
