@@ -79,10 +79,10 @@ def test_ground_truth_files(short_cell, tmp_path):
 @pytest.mark.parametrize('storage,compressed,encoding', [
     ('sqlite3', None, 'mono8'), ('mcap', 'png', 'mono8'), ('mcap', 'jpeg', 'rgb8'),
     ('mcap', None, 'bgr8')])
-def test_storage_compression_and_colour_options(short_cell, tmp_path, storage, compressed,
-                                                encoding):
+def test_storage_compression_and_colour_options(tmp_path, storage, compressed, encoding):
     path = tmp_path / 'bag'
-    sub = simulate_cell('geometric', seed=11, settings=SimSettings(duration=2.5))
+    sub = simulate_cell('geometric', seed=11,
+                        settings=SimSettings(duration=2.5, camera_rate=4.0, joint_rate=50.0))
     write_sim_bag(sub, path, storage=storage, compressed=compressed, encoding=encoding,
                   ground_truth=False)
     suffix = '.db3' if storage == 'sqlite3' else '.mcap'
