@@ -1,0 +1,647 @@
+"""
+The ``armcal`` node: background camera calibration on live topics (DESIGN.md section 5).
+
+Threads and why:
+
+- the executor (a MultiThreadedExecutor, one callback group per role) runs the subscription
+  callbacks, which only append the message to a bounded drop-oldest :class:`EventQueue`; the
+  services, which may wait for a solve; and the timers (diagnostics, solve scheduling);
+- one front-end worker thread owns the :class:`~armcal_ros.pipeline.SampleCollector` (not
+  thread-safe): it pairs, decodes and detects, in arrival order, and adds samples to the engine;
+- the engine's own solver thread runs the bundle adjustment; its result callback publishes
+  CameraInfo, poses, TF and markers, saves the files and commits to the camera drivers.
+
+So a slow decode or a long solve never delays a callback, and a burst the worker cannot keep up
+with costs the oldest images (counted in diagnostics), never the joint states they need.
+
+Parameters are the table of :mod:`armcal_ros.params`, declared with descriptors and checked at
+start-up (the node exits with the reason) and on every runtime set (refused with the reason).
+Those that shape the subscriptions, the robot model or the front end are read-only; the noise
+model, its hyperparameters, the solver's settings and the schedule may change while it runs and
+take effect at the next solve.
+"""
+
+import dataclasses
+import os
+import signal
+import sys
+import threading
+import time
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                ParameterType, SetParametersResult)
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
+from sensor_msgs.srv import SetCameraInfo
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
+
+from armcal_ros.offline import build_collector, build_engine, CalibrateError, stamp_ns
+from armcal_ros.params import (BY_NAME, check_all, check_value, default_output_dir, NODE_NAME,
+                               PARAMS, prior_settings, solver_settings)
+from armcal_ros.ros import conversions as conv
+from armcal_ros.ros.event_queue import EventQueue
+from armcal_ros.ros.status import diagnostic_statuses, NodeState
+
+#: Parameters that may change while the node runs (they apply from the next solve).
+RUNTIME_PARAMETERS = frozenset([
+    'noise_model', 'pixel_sigma', 'point_sigma', 'bias_sigma', 'coherence_length', 'kernel',
+    'free_distortion', 'robust_loss', 'robust_loss_scale', 'outlier_gate_sigmas',
+    'solve_period', 'min_samples', 'min_new_samples', 'publish_tf', 'set_camera_info_services',
+])
+
+_TYPES = {
+    'string': ParameterType.PARAMETER_STRING, 'double': ParameterType.PARAMETER_DOUBLE,
+    'int': ParameterType.PARAMETER_INTEGER, 'bool': ParameterType.PARAMETER_BOOL,
+    'double[]': ParameterType.PARAMETER_DOUBLE_ARRAY,
+    'string[]': ParameterType.PARAMETER_STRING_ARRAY,
+}
+_PTYPES = {
+    'string': Parameter.Type.STRING, 'double': Parameter.Type.DOUBLE,
+    'int': Parameter.Type.INTEGER, 'bool': Parameter.Type.BOOL,
+    'double[]': Parameter.Type.DOUBLE_ARRAY, 'string[]': Parameter.Type.STRING_ARRAY,
+}
+#: Parameter names rclpy or the ROS tooling declare or accept on every node.
+_FOREIGN_PARAMETERS = ('use_sim_time', 'start_type_description_service')
+
+#: Queue bounds: ~10 s of joint states at 500 Hz; images for ~1.3 s of three 15 Hz cameras
+#: (about 18 MB of VGA mono8) - the front end's budget before it drops the oldest.
+QUEUE_BOUNDS = {'joint': 5000, 'image': 60, 'control': None}
+#: With no input at all for this long, pending frames are decided and the open dwell closed.
+IDLE_FLUSH_S = 1.0
+SOLVE_CHECK_PERIOD_S = 0.5
+DIAGNOSTICS_PERIOD_S = 1.0
+SERVICE_SOLVE_TIMEOUT_S = 300.0
+
+
+class ParameterError(ValueError):
+    """A parameter value the node refuses; the message names it and says why."""
+
+
+def descriptor(p) -> ParameterDescriptor:
+    """Return the ROS parameter descriptor of a :class:`~armcal_ros.params.Param`."""
+    read_only = p.name not in RUNTIME_PARAMETERS
+    text = p.description + (' (read-only: set it at start-up)' if read_only else
+                            ' (may change at runtime; used from the next solve)')
+    d = ParameterDescriptor(name=p.name, type=_TYPES[p.type], description=text,
+                            read_only=read_only)
+    if p.type == 'double' and (p.minimum is not None or p.maximum is not None):
+        lo = p.minimum if p.minimum is not None else -sys.float_info.max
+        hi = p.maximum if p.maximum is not None else sys.float_info.max
+        d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi),
+                                                     step=0.0)]
+    if p.type == 'int' and (p.minimum is not None or p.maximum is not None):
+        lo = int(p.minimum) if p.minimum is not None else -2 ** 63
+        hi = int(p.maximum) if p.maximum is not None else 2 ** 63 - 1
+        d.integer_range = [IntegerRange(from_value=lo, to_value=hi, step=1)]
+    return d
+
+
+def _params_file_dirs(argv):
+    """Directories of the ``--params-file`` arguments in ``argv`` (last first)."""
+    out = []
+    argv = list(argv or ())
+    for i, a in enumerate(argv[:-1]):
+        if a == '--params-file':
+            out.append(os.path.dirname(os.path.abspath(argv[i + 1])))
+    return out[::-1]
+
+
+class CalibratorNode(Node):
+    """The calibrator node; raises :class:`ParameterError` if its parameters are refused."""
+
+    def __init__(self, argv=None, **node_kwargs):
+        super().__init__(NODE_NAME, **node_kwargs)
+        self._closing = False
+        self._pub_lock = threading.Lock()
+        self._solve_lock = threading.Lock()
+        self.values = self._declare_and_check(argv)
+        v = self.values
+        self.camera_names = list(v['camera_names'])
+        self.base_frame = v['base_frame']
+        self.output_dir = v['output_dir'] or default_output_dir()
+        try:
+            self.chain, self.collector = build_collector(v, log=self._log_input)
+        except (CalibrateError, ValueError) as exc:
+            raise ParameterError(f'parameters robot_description/robot_description_file, '
+                                 f'base_frame, marker_link: {exc}') from exc
+        self.engine = build_engine(v, self.chain)
+        self.engine.on_result(self._on_solve)
+        self.queue = EventQueue(QUEUE_BOUNDS)
+        self._counts = {}
+        self._per_camera = {}
+        self._last_outcome_wall = None
+        self._restored = ''
+        self._markers_revision = -1
+        self._last_estimated = None
+        self._static_tf = None
+        self._tf_warned = False
+
+        self._cb_inputs = MutuallyExclusiveCallbackGroup()
+        self._cb_services = MutuallyExclusiveCallbackGroup()
+        self._cb_timers = MutuallyExclusiveCallbackGroup()
+        self._cb_clients = MutuallyExclusiveCallbackGroup()
+
+        latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_info = {c: self.create_publisher(CameraInfo, f'~/{c}/camera_info', latched)
+                         for c in self.camera_names}
+        self.pub_pose = {c: self.create_publisher(PoseWithCovarianceStamped, f'~/{c}/pose',
+                                                  latched) for c in self.camera_names}
+        self.pub_markers = self.create_publisher(MarkerArray, '~/markers', latched)
+        self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.pub_samples = self.create_publisher(PointStamped, '~/samples', 100)
+        self._set_info_clients = {}
+        self._make_set_info_clients(v['set_camera_info_services'])
+
+        self.create_service(Trigger, '~/calibrate', self._srv_calibrate,
+                            callback_group=self._cb_services)
+        self.create_service(Trigger, '~/reset', self._srv_reset,
+                            callback_group=self._cb_services)
+        self.create_service(Trigger, '~/save', self._srv_save, callback_group=self._cb_services)
+
+        # Best effort so that reliable and best-effort publishers both match (PEERS.md item 4).
+        def sensor_qos(depth):
+            return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                              reliability=ReliabilityPolicy.BEST_EFFORT,
+                              durability=DurabilityPolicy.VOLATILE)
+        self.create_subscription(JointState, v['joint_states_topic'], self._on_joint_state,
+                                 sensor_qos(200), callback_group=self._cb_inputs)
+        for cam, topic in zip(self.camera_names, v['image_topics']):
+            mtype = CompressedImage if topic.rstrip('/').endswith('/compressed') else Image
+            self.create_subscription(mtype, topic, self._image_callback(cam), sensor_qos(10),
+                                     callback_group=self._cb_inputs)
+            self.get_logger().info(f'{cam}: {mtype.__name__} on {topic}')
+
+        if v['resume']:
+            self._resume()
+        self._worker = threading.Thread(target=self._work, name='armcal-frontend', daemon=True)
+        self._worker.start()
+        self.create_timer(SOLVE_CHECK_PERIOD_S, self._maybe_solve,
+                          callback_group=self._cb_timers)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics,
+                          callback_group=self._cb_timers)
+        self.add_on_set_parameters_callback(self._check_runtime_parameters)
+        self.add_post_set_parameters_callback(self._apply_runtime_parameters)
+        self.get_logger().info(
+            f'calibrating {self.camera_names} ({v["noise_model"]} model) with joint states on '
+            f'{v["joint_states_topic"]}; marker on {v["marker_link"]}; output in '
+            f'{self.output_dir}')
+
+    # -- parameters ----------------------------------------------------------------------
+    def _declare_and_check(self, argv):
+        errors, values = [], {}
+        for p in PARAMS:
+            try:
+                if isinstance(p.default, list) and not p.default:
+                    # An empty list cannot tell rclpy its element type: declare by type.
+                    param = self.declare_parameter(p.name, _PTYPES[p.type], descriptor(p))
+                else:
+                    param = self.declare_parameter(p.name, p.default, descriptor(p))
+                value = param.value
+            except ParameterException as exc:
+                errors.append(f'parameter {p.name}: {exc} (expected {p.type})')
+                continue
+            if value is None:
+                # Initialise it (so that `ros2 param get` works); runtime checks are not
+                # registered yet.
+                value = list(p.default)
+                self.set_parameters([Parameter(p.name, _PTYPES[p.type], value)])
+            try:
+                values[p.name] = check_value(p.name, value)
+            except ValueError as exc:
+                errors.append(str(exc))
+        overrides = getattr(self, '_parameter_overrides', {}) or {}
+        unknown = sorted(k for k in overrides if k not in BY_NAME
+                         and k not in _FOREIGN_PARAMETERS and not k.startswith('qos_overrides.'))
+        if unknown:
+            errors.append(f'unknown parameter(s) {unknown} (misspelt? see the parameter table '
+                          f'in DESIGN.md section 5 or `ros2 param describe`)')
+        if errors:
+            raise ParameterError('; '.join(errors))
+        rel = values['robot_description_file']
+        if rel and not os.path.isabs(rel):
+            for d in _params_file_dirs(argv):
+                if os.path.exists(os.path.join(d, rel)):
+                    values['robot_description_file'] = os.path.normpath(os.path.join(d, rel))
+                    break
+        try:
+            check_all(values)
+            prior_settings(values)
+            solver_settings(values)
+        except ValueError as exc:
+            raise ParameterError(str(exc)) from exc
+        return values
+
+    def _check_runtime_parameters(self, params):
+        new = dict(self.values)
+        for p in params:
+            if p.name in _FOREIGN_PARAMETERS:
+                continue
+            if p.name not in BY_NAME:
+                return SetParametersResult(successful=False,
+                                           reason=f'unknown parameter {p.name!r}')
+            if p.name not in RUNTIME_PARAMETERS:
+                return SetParametersResult(
+                    successful=False, reason=f'parameter {p.name} is read-only: it shapes the '
+                    f'subscriptions, robot model or front end; restart the node to change it')
+            try:
+                new[p.name] = check_value(p.name, p.value)
+            except ValueError as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+        try:
+            check_all(new)
+            self._engine_settings(new)
+        except ValueError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _engine_settings(self, values):
+        return dataclasses.replace(
+            self.engine.settings, prior=prior_settings(values), solver=solver_settings(values),
+            min_samples=values['min_samples'], solve_period_s=values['solve_period'],
+            min_new_samples=values['min_new_samples']).validate()
+
+    def _apply_runtime_parameters(self, params):
+        changed = [p for p in params if p.name in BY_NAME]
+        if not changed:
+            return
+        new = dict(self.values)
+        for p in changed:
+            new[p.name] = check_value(p.name, p.value)
+        self.engine.settings = self._engine_settings(new)
+        if new['set_camera_info_services'] != self.values['set_camera_info_services']:
+            self._make_set_info_clients(new['set_camera_info_services'])
+        self.values = new
+        self.get_logger().info('parameters changed (used from the next solve; call ~/calibrate '
+                               'to solve now): ' + ', '.join(f'{p.name}={p.value!r}'
+                                                             for p in changed))
+
+    # -- inputs (executor threads: append only) ------------------------------------------
+    def _on_joint_state(self, msg):
+        self.queue.put('joint', msg)
+
+    def _image_callback(self, camera):
+        def callback(msg):
+            self.queue.put('image', (camera, msg))
+        return callback
+
+    def _log_input(self, message):
+        self.get_logger().warning(message)
+
+    # -- front-end worker ----------------------------------------------------------------
+    def _work(self):
+        last_input = time.monotonic()
+        flushed = True
+        while True:
+            batch = self.queue.get_batch(timeout=0.2)
+            if not batch:
+                if self.queue.closed:
+                    return
+                if not flushed and time.monotonic() - last_input > IDLE_FLUSH_S:
+                    self._store(self._guard(self.collector.flush))
+                    flushed = True
+                    self._snapshot()
+                continue
+            for kind, item in batch:
+                if kind == 'control':
+                    self._guard(item)
+                    continue
+                last_input = time.monotonic()
+                flushed = False
+                if kind == 'joint':
+                    samples = self._guard(self.collector.add_joint_state,
+                                          stamp_ns(item.header.stamp), item.name, item.position)
+                else:
+                    camera, msg = item
+                    samples = self._guard(self.collector.add_image, camera,
+                                          stamp_ns(msg.header.stamp), msg)
+                self._store(samples)
+            for cam, (w, h) in list(self.collector.image_sizes.items()):
+                if self.engine.image_sizes.get(cam) != (w, h):
+                    self.engine.set_image_size(cam, w, h)
+            self._snapshot()
+
+    def _guard(self, fn, *args):
+        """Run ``fn``; a failure costs the input (counted and logged), never the worker."""
+        try:
+            return fn(*args)
+        except Exception as exc:  # noqa: B902 - the worker must survive any bad input
+            self.collector.counts['worker_error'] += 1
+            self.collector.log('worker_error', f'front end error (input skipped): '
+                               f'{type(exc).__name__}: {exc}')
+            return []
+
+    def _store(self, samples):
+        for s in samples or ():
+            result = self.engine.add_sample(s)
+            self.collector.counts[f'sample_{result.value}'] += 1
+            if result.value != 'dropped':
+                self._publish(self.pub_samples, conv.point_stamped_msg(
+                    s.point_nominal, self.base_frame, conv.time_msg(s.stamp_ns)))
+        if samples:
+            self._count_per_camera()
+
+    def _count_per_camera(self):
+        counts = {c: 0 for c in self.camera_names}
+        for s in self.engine.store.samples:
+            for c in s.observations:
+                if c in counts:
+                    counts[c] += 1
+        self._per_camera = counts
+
+    def _snapshot(self):
+        self._counts = dict(self.collector.counts)
+
+    # -- solving -------------------------------------------------------------------------
+    def _maybe_solve(self):
+        if not self._solve_lock.acquire(blocking=False):
+            return
+        try:
+            self.engine.maybe_solve_async()
+        finally:
+            self._solve_lock.release()
+
+    def _on_solve(self, outcome):
+        """Engine callback (solver or service thread): publish, save, commit, log."""
+        try:
+            self._handle_outcome(outcome)
+        except Exception as exc:  # noqa: B902 - publishing must not kill the solver thread
+            if not self._closing:
+                self.get_logger().error(f'cannot publish the calibration: '
+                                        f'{type(exc).__name__}: {exc}')
+
+    def _handle_outcome(self, outcome):
+        self._last_outcome_wall = time.time()
+        if not outcome.accepted:
+            self.get_logger().warning(f'solve on {outcome.n_samples} samples not accepted: '
+                                      f'{outcome.reason}')
+            return
+        cal = outcome.calibration
+        adj = outcome.result.adjustment if outcome.result is not None else None
+        self._last_estimated = None if adj is None else np.array(adj.points)
+        self.get_logger().info(
+            f'calibration accepted: {cal.model} model, {outcome.n_samples} samples, cost '
+            f'{cal.cost:.4g}, {outcome.time_s:.1f} s; RMS '
+            + ', '.join(f'{n} {c.rms_px:.3f} px' for n, c in cal.cameras.items()))
+        self._publish_calibration(cal)
+        self._save('after a solve')
+        self._commit_to_drivers(cal)
+
+    def _publish(self, pub, msg):
+        with self._pub_lock:
+            if not self._closing:
+                pub.publish(msg)
+
+    def _publish_calibration(self, cal):
+        stamp = self.get_clock().now().to_msg()
+        cams = [cal.cameras[c].camera for c in self.camera_names if c in cal.cameras]
+        for name in self.camera_names:
+            c = cal.cameras.get(name)
+            if c is None:
+                continue
+            self._publish(self.pub_info[name], conv.camera_info_msg(c.camera, stamp))
+            self._publish(self.pub_pose[name], conv.pose_msg(c.camera, c.pose_covariance,
+                                                             self.base_frame, stamp))
+        self._publish_tf(cams, stamp)
+        self._publish_markers(force=True)
+
+    def _publish_tf(self, cams, stamp):
+        if not self.values['publish_tf'] or not cams:
+            return
+        if self._static_tf is None:
+            try:
+                import tf2_ros
+            except ImportError:
+                if not self._tf_warned:
+                    self._tf_warned = True
+                    self.get_logger().warning(
+                        'tf2_ros is not importable here: static TF base_frame -> '
+                        '<camera>_optical_frame is not published; the poses are on '
+                        '~/<camera>/pose and in extrinsics.yaml')
+                return
+            self._static_tf = tf2_ros.StaticTransformBroadcaster(self)
+        with self._pub_lock:
+            if not self._closing:
+                self._static_tf.sendTransform([conv.transform_msg(c, self.base_frame, stamp)
+                                               for c in cams])
+
+    def _publish_markers(self, force=False):
+        rev = self.engine.store.revision
+        if not force and rev == self._markers_revision:
+            return
+        self._markers_revision = rev
+        cal = self.engine.current
+        cams = [] if cal is None else [cal.cameras[c].camera for c in self.camera_names
+                                       if c in cal.cameras]
+        pts = np.array([s.point_nominal for s in self.engine.store.samples]).reshape(-1, 3)
+        self._publish(self.pub_markers, conv.marker_array_msg(
+            self.base_frame, self.get_clock().now().to_msg(), pts, cams, self._last_estimated))
+
+    def _save(self, why):
+        try:
+            files = self.engine.save(self.output_dir)
+        except (OSError, ValueError) as exc:
+            self.get_logger().error(f'cannot save to {self.output_dir} ({why}): {exc}')
+            return None
+        return files
+
+    def _resume(self):
+        try:
+            said = self.engine.load(self.output_dir)
+        except (OSError, ValueError) as exc:
+            self.get_logger().error(f'cannot resume from {self.output_dir}: {exc}; starting '
+                                    f'without the saved samples and calibration')
+            return
+        self._restored = said
+        self.get_logger().info(f'{said} from {self.output_dir}')
+        self._count_per_camera()
+        cal = self.engine.current
+        if cal is not None:
+            self._publish_calibration(cal)
+
+    # -- camera drivers (SetCameraInfo) --------------------------------------------------
+    def _make_set_info_clients(self, services):
+        for client in self._set_info_clients.values():
+            self.destroy_client(client)
+        self._set_info_clients = {
+            cam: self.create_client(SetCameraInfo, srv, callback_group=self._cb_clients)
+            for cam, srv in zip(self.camera_names, services)}
+
+    def _commit_to_drivers(self, cal):
+        for cam, client in list(self._set_info_clients.items()):
+            c = cal.cameras.get(cam)
+            if c is None:
+                continue
+            if not client.service_is_ready():
+                self.get_logger().warning(f'{cam}: {client.srv_name} is not available; the '
+                                          f'calibration was not committed to the driver')
+                continue
+            req = SetCameraInfo.Request()
+            req.camera_info = conv.camera_info_msg(c.camera, self.get_clock().now().to_msg())
+            future = client.call_async(req)
+            future.add_done_callback(self._commit_answer(cam, client.srv_name))
+
+    def _commit_answer(self, cam, srv):
+        def done(future):
+            try:
+                res = future.result()
+            except Exception as exc:  # noqa: B902 - any failure of the call is reported
+                self.get_logger().error(f'{cam}: {srv} failed: {exc}')
+                return
+            if res.success:
+                self.get_logger().info(f'{cam}: driver accepted the calibration via {srv}: '
+                                       f'{res.status_message!r}')
+            else:
+                self.get_logger().error(f'{cam}: driver refused the calibration via {srv}: '
+                                        f'{res.status_message!r}')
+        return done
+
+    # -- services ------------------------------------------------------------------------
+    def _run_in_worker(self, fn, timeout=10.0):
+        """Run ``fn`` on the front-end worker, in order with the inputs; return its result."""
+        done = threading.Event()
+        box = {}
+
+        def job():
+            try:
+                box['result'] = fn()
+            finally:
+                done.set()
+        self.queue.put('control', job)
+        if not done.wait(timeout):
+            raise TimeoutError(f'the front end did not answer within {timeout} s')
+        return box.get('result')
+
+    def _srv_calibrate(self, request, response):
+        try:
+            self._run_in_worker(lambda: self._store(self.collector.flush()))
+        except TimeoutError as exc:
+            self.get_logger().warning(f'~/calibrate: {exc}; solving on what is stored')
+        with self._solve_lock:
+            if not self.engine.wait(SERVICE_SOLVE_TIMEOUT_S):
+                response.success = False
+                response.message = 'a background solve is still running; try again later'
+                return response
+            outcome = self.engine.solve(force=True)
+        response.success = bool(outcome.accepted)
+        if outcome.accepted:
+            cal = outcome.calibration
+            response.message = (
+                f'accepted: {cal.model} model, {outcome.n_samples} samples, cost '
+                f'{cal.cost:.4g}, {outcome.time_s:.2f} s; RMS '
+                + ', '.join(f'{n} {c.rms_px:.3f} px' for n, c in cal.cameras.items()))
+        else:
+            response.message = f'not accepted ({outcome.n_samples} samples): {outcome.reason}'
+        return response
+
+    def _srv_reset(self, request, response):
+        def reset():
+            n = len(self.engine.store)
+            self.collector.reset()
+            self.engine.reset()
+            self._count_per_camera()
+            return n
+        try:
+            n = self._run_in_worker(reset)
+        except TimeoutError as exc:
+            response.success, response.message = False, str(exc)
+            return response
+        self._save('after a reset')
+        self._publish_markers(force=True)
+        response.success = True
+        response.message = (f'forgot {n} samples; the current calibration stays published '
+                            f'until a new solve replaces it')
+        self.get_logger().info(response.message)
+        return response
+
+    def _srv_save(self, request, response):
+        files = self._save('on request')
+        response.success = files is not None
+        response.message = (f'wrote {", ".join(os.path.basename(f) for f in files)} to '
+                            f'{self.output_dir}' if files is not None else
+                            f'cannot write to {self.output_dir} (see the log)')
+        return response
+
+    # -- diagnostics ---------------------------------------------------------------------
+    def node_state(self) -> NodeState:
+        """Return a snapshot of what the diagnostics report."""
+        e = self.engine
+        return NodeState(
+            camera_names=self.camera_names, n_samples=len(e.store),
+            min_samples=e.settings.min_samples, samples_per_camera=dict(self._per_camera),
+            image_sizes=dict(e.image_sizes), solving=e.solving, n_solves=e.n_solves,
+            n_rejected=e.n_rejected, calibration=e.current, last_outcome=e.last_outcome,
+            last_outcome_wall=self._last_outcome_wall, input_counts=dict(self._counts),
+            queue_dropped=dict(self.queue.dropped), queue_depth=self.queue.depth(),
+            restored=self._restored)
+
+    def _publish_diagnostics(self):
+        stamp = self.get_clock().now().to_msg()
+        self._publish(self.pub_diag, conv.diagnostic_array_msg(
+            diagnostic_statuses(self.node_state(), self.get_name()), stamp))
+        self._publish_markers()
+
+    # -- shutdown ------------------------------------------------------------------------
+    def close(self, solve_timeout=30.0):
+        """Stop the worker, wait for a running solve, save; call before destroy_node()."""
+        self.queue.close()
+        self._worker.join(timeout=10.0)
+        if not self.engine.wait(solve_timeout):
+            self.get_logger().warning('a solve is still running at shutdown; its result is '
+                                      'discarded')
+        with self._pub_lock:
+            self._closing = True
+        if self._save('at shutdown') is not None:
+            self.get_logger().info(f'saved {len(self.engine.store)} samples to '
+                                   f'{self.output_dir}')
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(f'signal {signum}')
+
+
+def main(args=None):
+    """
+    Entry point of ``calibrator_node``; returns the exit status (2 for refused parameters).
+
+    SIGINT and SIGTERM end the spin in the main thread while the context is still valid, so
+    that the node can stop its threads, save and log before rclpy shuts down (DESIGN.md
+    section 8: threads are joined before ``rclpy.shutdown()``).
+    """
+    argv = sys.argv if args is None else args
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        node = CalibratorNode(argv=argv)
+    except ParameterError as exc:
+        print(f'[armcal] refusing to start: {exc}', file=sys.stderr, flush=True)
+        rclpy.try_shutdown()
+        return 2
+    executor = MultiThreadedExecutor(num_threads=4)
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.close()
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
