@@ -17,7 +17,7 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m armcal_ros.demo
+	$(PY) -m armcal_ros.cli demo
 
 test: $(STAMP)
 	$(PY) -m pytest -ra test

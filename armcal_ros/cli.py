@@ -68,7 +68,14 @@ SUBCOMMANDS = {
                'node', _add_replay, _run_replay),
     'calibrate': ('calibrate the cameras from a recorded rosbag2 bag (no ROS middleware needed)',
                   lambda p: _offline().add_arguments(p), lambda a: _offline().run(a)),
+    'demo': ('calibrate the bundled demo bag and compare with its ground truth',
+             lambda p: _demo().add_arguments(p), lambda a: _demo().run(a)),
 }
+
+
+def _demo():
+    from armcal_ros import demo
+    return demo
 
 
 def _offline():

@@ -73,9 +73,23 @@ def build_engine(values, chain):
     return CalibrationEngine(settings, store)
 
 
-def calibrate_bag(bag, values, output_dir, progress: Callable[[int, int], None] = None,
-                  log: Callable[[str], None] = None) -> OfflineResult:
-    """Run the pipeline on ``bag`` with checked parameter ``values``; write to ``output_dir``."""
+@dataclass
+class FrontEnd:
+    """The samples a bag gave, with everything needed to solve and report on them."""
+
+    chain: KinematicChain
+    store: SampleStore
+    image_sizes: Dict[str, tuple]
+    counts: Dict[str, int]
+    warnings: List[str]
+    added: Dict[str, int]
+    messages: int
+    time_s: float
+
+
+def collect_samples(bag, values, progress: Callable[[int, int], None] = None,
+                    log: Callable[[str], None] = None) -> FrontEnd:
+    """Read ``bag`` and turn its joint states and images into samples (the front end)."""
     t0 = time.perf_counter()
     try:
         topics = bag_topics(bag)
@@ -105,11 +119,10 @@ def calibrate_bag(bag, values, output_dir, progress: Callable[[int, int], None] 
         if log:
             log(w)
     chain, collector = build_collector(values, log)
-    engine = build_engine(values, chain)
+    store = build_engine(values, chain).store
     total = topics[jt][1] + sum(topics[t][1] for t in cam_of_topic)
     n = 0
     added = {'added': 0, 'merged': 0, 'replaced': 0, 'dropped': 0}
-    t_read = time.perf_counter()
     for raw in iter_raw(bag, [jt] + list(cam_of_topic)):
         n += 1
         if progress and n % 500 == 0:
@@ -127,22 +140,29 @@ def calibrate_bag(bag, values, output_dir, progress: Callable[[int, int], None] 
             collector.log('corrupt_message', f'skipped: {exc}')
             continue
         for s in samples:
-            added[engine.add_sample(s).value] += 1
+            added[store.add(s).value] += 1
     for s in collector.flush():
-        added[engine.add_sample(s).value] += 1
+        added[store.add(s).value] += 1
     if progress:
         progress(total, total)
-    t_front = time.perf_counter() - t_read
-    for cam, (w, h) in collector.image_sizes.items():
-        engine.set_image_size(cam, w, h)
-    if len(engine.store) < values['min_samples']:
-        raise CalibrateError(f'only {len(engine.store)} samples (min_samples '
+    return FrontEnd(chain, store, dict(collector.image_sizes), dict(collector.counts), warnings,
+                    added, n, time.perf_counter() - t0)
+
+
+def solve_and_write(front: FrontEnd, values, output_dir) -> OfflineResult:
+    """Solve the collected samples with ``values``' noise model and write the files."""
+    if len(front.store) < values['min_samples']:
+        raise CalibrateError(f'only {len(front.store)} samples (min_samples '
                              f'{values["min_samples"]}): did the arm dwell in view of the '
-                             f'cameras? front-end counts: {dict(collector.counts)}')
+                             f'cameras? front-end counts: {front.counts}')
+    engine = build_engine(values, front.chain)
+    engine.store = front.store
+    for cam, (w, h) in front.image_sizes.items():
+        engine.set_image_size(cam, w, h)
     outcome = engine.solve(force=True)
-    report = make_report(values, engine, outcome, collector, warnings, added,
-                         dict(front_end_s=t_front, solve_s=outcome.time_s,
-                              total_s=time.perf_counter() - t0, messages=n))
+    report = make_report(values, engine, outcome, front,
+                         dict(front_end_s=front.time_s, solve_s=outcome.time_s,
+                              total_s=front.time_s + outcome.time_s, messages=front.messages))
     if not outcome.accepted:
         raise CalibrateError(f'calibration failed: {outcome.reason}')
     os.makedirs(output_dir, exist_ok=True)
@@ -150,10 +170,16 @@ def calibrate_bag(bag, values, output_dir, progress: Callable[[int, int], None] 
     path = os.path.join(output_dir, 'report.json')
     atomic_write_text(path, json.dumps(report, indent=1))
     files.append(path)
-    return OfflineResult(outcome, report, warnings, files)
+    return OfflineResult(outcome, report, front.warnings, files)
 
 
-def make_report(values, engine, outcome, collector, warnings, added, timings):
+def calibrate_bag(bag, values, output_dir, progress: Callable[[int, int], None] = None,
+                  log: Callable[[str], None] = None) -> OfflineResult:
+    """Run the pipeline on ``bag`` with checked parameter ``values``; write to ``output_dir``."""
+    return solve_and_write(collect_samples(bag, values, progress, log), values, output_dir)
+
+
+def make_report(values, engine, outcome, front, timings):
     """Return the report.json content."""
     cal = outcome.calibration
     cams = {}
@@ -178,8 +204,8 @@ def make_report(values, engine, outcome, collector, warnings, added, timings):
                              robust_loss=values['robust_loss'],
                              robust_loss_scale=values['robust_loss_scale']),
         accepted=bool(outcome.accepted), message=outcome.reason,
-        n_samples=len(engine.store), samples=added, cameras=cams,
-        front_end=dict(collector.counts), warnings=warnings, timings=timings,
+        n_samples=len(engine.store), samples=front.added, cameras=cams,
+        front_end=dict(front.counts), warnings=front.warnings, timings=timings,
         stages=[list(s) for s in (outcome.result.stages if outcome.result else [])])
 
 
