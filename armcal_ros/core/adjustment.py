@@ -177,7 +177,7 @@ class AdjustmentResult:
 
     def predict_offsets(self, measured, jacobian=None):
         """
-        The fitted prior's prediction of X - X^ at other robot points (M, 3).
+        Return the fitted prior's prediction of X - X^ at other robot points (M, 3).
 
         ``measured`` (M, 3) are robot-measured points, ``jacobian`` (M, 3, P) their kinematic
         Jacobian (needed by 'kinematic' and 'hybrid').  For the exact correlated prior this is

@@ -17,7 +17,7 @@ from armcal_ros.core.adjustment import (AdjustmentResult, Observations, SolverSe
                                         adjust)
 from armcal_ros.core.camera import Camera
 from armcal_ros.core.initialisation import initialise_camera, InitResult
-from armcal_ros.core.priors import PriorSettings
+from armcal_ros.core.priors import KINEMATIC_MODELS, PriorSettings
 
 
 @dataclass
@@ -47,6 +47,7 @@ class CalibrationResult:
     stages: List[Tuple[str, float, int, float]] = field(default_factory=list)
     time_s: float = 0.0
     camera_index: Dict[str, int] = field(default_factory=dict)
+    selection: Optional[object] = None      # model_selection.ModelSelection for 'auto'
 
     @property
     def cameras(self):
@@ -58,16 +59,25 @@ class CalibrationResult:
 
 def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
               prior: PriorSettings = None, settings: SolverSettings = None,
-              initial: Optional[Dict[str, Camera]] = None, rng=None) -> CalibrationResult:
+              initial: Optional[Dict[str, Camera]] = None, rng=None,
+              kinematics=None, globals_init=None) -> CalibrationResult:
     """
     Calibrate the cameras ``specs`` from robot points ``measured`` (N, 3) and observations.
 
     ``initial`` maps camera names to warm-start estimates (a previous calibration); cameras
     without one are initialised by DLT.  With a warm start the ``fixed`` stage is skipped.
+    ``kinematics`` (:class:`~armcal_ros.core.kinematic_prior.KinematicData`, from joint
+    angles) enables the 'kinematic' and 'hybrid' models; ``globals_init`` warm-starts their
+    global parameters.  With ``prior.model == 'auto'`` the model and its hyperparameters are
+    chosen by :func:`~armcal_ros.core.model_selection.select_model` after the ``fixed`` stage
+    (``result.selection`` says what was chosen and why).
     """
     t0 = time.perf_counter()
     prior = (prior or PriorSettings()).validate()
     settings = (settings or SolverSettings()).validate()
+    if prior.model in KINEMATIC_MODELS and kinematics is None:
+        raise ValueError(f'noise_model {prior.model!r} needs joint angles (kinematics); '
+                         'use correlated or auto with pose input')
     measured = np.asarray(measured, float)
     rng = rng if rng is not None else np.random.default_rng(0)
     initial = initial or {}
@@ -101,18 +111,30 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
     points = None
     inliers = None
     cold = [specs[j].name for j in keep if specs[j].name not in initial]
-    if cold or prior.model == 'fixed':
+    selection = None
+    if cold or prior.model in ('fixed', 'auto'):
         fixed = adjust(cams, measured, sub, replace(prior, model='fixed'), settings)
         stages.append(('fixed', fixed.cost, fixed.iterations, fixed.time_s))
         cams = fixed.camera_list()
         inliers = fixed.inliers
         final = fixed
-    if prior.model != 'fixed':
-        final = adjust(cams, measured, sub, prior, settings, points_init=points, inliers=inliers)
+    if prior.model == 'auto':
+        from armcal_ros.core.model_selection import select_model
+        selection = select_model(cams, measured, sub, prior, settings, kinematics, inliers,
+                                 rng=rng)
+        final = selection.result
+        stages.append((f'auto:{selection.settings.model}', final.cost, final.iterations,
+                       selection.time_s))
+    elif prior.model != 'fixed':
+        kin = kinematics if prior.model in KINEMATIC_MODELS else None
+        final = adjust(cams, measured, sub, prior, settings, points_init=points, inliers=inliers,
+                       kinematics=kin, globals_init=globals_init)
         stages.append((prior.model, final.cost, final.iterations, final.time_s))
     failed = [r.message for r in init.values() if not r.success]
     msg = final.message if not failed else final.message + '; skipped: ' + '; '.join(failed)
     status = final.status if not failed else 'partial'
+    if selection is not None:
+        msg = selection.reason + '; ' + msg
     return CalibrationResult(final.success, status, msg, final, init, stages,
                              time.perf_counter() - t0,
-                             {specs[j].name: k for k, j in enumerate(keep)})
+                             {specs[j].name: k for k, j in enumerate(keep)}, selection)

@@ -76,7 +76,7 @@ class LatticeField:
     """
 
     def __init__(self, points, bias_sigma, coherence_length, kernel='squared_exponential',
-                 spacing_factor=0.5, max_nodes=1200, eig_tol=1e-6, max_rank=400):
+                 spacing_factor=0.5, max_nodes=1200, eig_tol=1e-6, max_rank=150):
         P = np.asarray(points, float)
         if P.ndim != 2 or P.shape[1] != 3 or P.shape[0] == 0:
             raise ValueError(f'points must have shape (N, 3) with N > 0, got {P.shape}')

@@ -117,15 +117,15 @@ class KinematicData:
 
     @property
     def n(self):
-        """Number of points."""
+        """Return the number of points."""
         return self.jacobian.shape[0]
 
     def subset(self, index):
-        """The same data for a subset of the points."""
+        """Return the same data for a subset of the points."""
         return KinematicData(self.jacobian[index], self.names, self.sigma)
 
     def scaled(self, factor):
-        """The same data with every prior sigma multiplied by ``factor``."""
+        """Return the same data with every prior sigma multiplied by ``factor``."""
         return KinematicData(self.jacobian, self.names, self.sigma * float(factor))
 
     def whitened_design(self, scale=1.0):

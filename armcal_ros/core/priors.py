@@ -80,7 +80,9 @@ class PriorSettings:
     field_form chooses the exact (dense, O(N^3)) or lattice (O(N)) form of the correlated
     field; 'auto' takes the exact one up to ``exact_max_points`` points (the lattice is always
     used by ``hybrid``).  lattice_spacing is the lattice spacing as a fraction of L,
-    lattice_max_nodes caps the lattice (the spacing widens beyond it).  kinematic_scale
+    lattice_max_nodes caps the lattice (the spacing widens beyond it) and
+    lattice_max_rank the number of field coefficients per axis (the leading eigenvectors of the
+    lattice covariance are kept; the rest is restored as per-point variance).  kinematic_scale
     multiplies every kinematic prior sigma (``KinematicData.sigma``).
     """
 
@@ -93,6 +95,7 @@ class PriorSettings:
     exact_max_points: int = 600
     lattice_spacing: float = 0.5
     lattice_max_nodes: int = 1200
+    lattice_max_rank: int = 150
     kinematic_scale: float = 1.0
 
     def validate(self):
@@ -108,6 +111,9 @@ class PriorSettings:
             raise ValueError(f'field_form must be one of {FIELD_FORMS}, got {self.field_form!r}')
         if not self.kinematic_scale >= 0:
             raise ValueError(f'kinematic_scale must be >= 0, got {self.kinematic_scale}')
+        if self.lattice_max_rank < 1 or self.lattice_max_nodes < 8:
+            raise ValueError(f'lattice_max_rank must be >= 1 and lattice_max_nodes >= 8, got '
+                             f'{self.lattice_max_rank}, {self.lattice_max_nodes}')
         if not 0 < self.lattice_spacing <= 2:
             raise ValueError(f'lattice_spacing must be in (0, 2], got {self.lattice_spacing}')
         if self.model in ('correlated', 'hybrid'):
@@ -180,7 +186,8 @@ class PointPrior:
         if self.lattice and settings.bias_sigma > 0:
             self.field = LatticeField(self.measured, settings.bias_sigma,
                                       settings.coherence_length, settings.kernel,
-                                      settings.lattice_spacing, settings.lattice_max_nodes)
+                                      settings.lattice_spacing, settings.lattice_max_nodes,
+                                      max_rank=settings.lattice_max_rank)
             parts.append(self.field)
             var = var + self.field.missing_variance
         self.design = StackedDesign(parts) if parts else None

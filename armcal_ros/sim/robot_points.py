@@ -40,7 +40,7 @@ class RobotProblem(SyntheticProblem):
 
 def build_true_robot(chain, scenario, rng, s: SimSettings, q_sample, field=None):
     """
-    The true robot of ``scenario`` (draws in the cell simulator's order and magnitudes).
+    Return the true robot of ``scenario`` (draws in the cell simulator's order and magnitudes).
 
     ``field`` overrides the scenario's bias field as (sigma m, coherence length m) or None.
     """
@@ -56,8 +56,10 @@ def build_true_robot(chain, scenario, rng, s: SimSettings, q_sample, field=None)
     c = draw_compliance(chain, rng, q_sample, s.compliance_deg)
     field_rng = np.random.default_rng(rng.integers(2 ** 63))
     errors = e if geometric else np.zeros(chain.n_errors)
-    amp, phase, comp = (a, p, c) if nongeometric else (np.zeros((n, 2)), np.zeros((n, 2)),
-                                                          np.zeros(n))
+    if nongeometric:
+        amp, phase, comp = a, p, c
+    else:
+        amp, phase, comp = np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n)
     bias = FourierBiasField(field_spec[0], field_spec[1], field_rng) if field_spec else None
     return TrueRobot(chain, np.asarray(s.marker_offset, float), errors, amp, phase, comp, bias)
 

@@ -1,0 +1,239 @@
+"""
+``noise_model: auto``: choose the prior and its hyperparameters from the data.
+
+Candidates are the models the data allow (``kinematic`` and ``hybrid`` need joint angles, i.e. a
+kinematic Jacobian) with hyperparameters on a small grid (:data:`DEFAULT_GRID`).  Each is
+adjusted from the same warm start (the ``fixed`` solution) on the same inlier set, and scored by
+the Laplace approximation of its marginal likelihood (the evidence, see
+:func:`armcal_ros.core.adjustment._laplace_evidence`): the probability of the images and the
+robot's points under the model with every camera, point and global parameter integrated out.
+It rewards fit and penalises a prior that is looser than the data need, so it can pick a
+coherence length or a bias sigma where the fit alone would always prefer the loosest prior.
+
+The grid is searched one coordinate at a time (coherence length, then bias sigma, for the field;
+the common multiplier of the kinematic sigmas; for ``hybrid`` the kinematic multiplier of the
+best ``kinematic`` candidate and then the field), about fifteen adjustments in all.
+
+Check: held-out reprojection.  For the best candidate of each model, a fifth of the points is
+held out, the model is fitted on the rest, the held-out points are predicted from the robot's
+measurement (X^ plus the model's predicted correction: J_p dp, the field's posterior mean) and
+projected with the fitted cameras; the RMS pixel error against their observations says how
+well the model predicts where the arm really is.  The evidence decides; the report gives both,
+and says so when they disagree.
+"""
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from armcal_ros.core.adjustment import (AdjustmentResult, Observations, SolverSettings,
+                                        adjust)
+from armcal_ros.core.priors import KINEMATIC_MODELS, PriorSettings
+
+#: Hyperparameter grid of ``auto`` (metres; the kinematic scale multiplies the default sigmas).
+DEFAULT_GRID = {
+    'coherence_length': (0.15, 0.3, 0.6),
+    'bias_sigma': (0.3e-3, 1e-3, 3e-3),
+    'hybrid_bias_sigma': (0.1e-3, 0.3e-3, 1e-3),
+    'kinematic_scale': (0.5, 1.0, 2.0),
+}
+
+
+@dataclass
+class Candidate:
+    """One adjusted candidate: its settings, evidence and held-out check."""
+
+    settings: PriorSettings
+    log_evidence: float
+    time_s: float
+    success: bool
+    holdout_px: float = float('nan')
+    result: Optional[AdjustmentResult] = None
+
+    def label(self):
+        """Return a short description: model and hyperparameters."""
+        s = self.settings
+        parts = [s.model]
+        if s.model in ('correlated', 'hybrid'):
+            parts.append(f's_b={s.bias_sigma * 1e3:.2g}mm L={s.coherence_length:.2g}m')
+        if s.model in KINEMATIC_MODELS:
+            parts.append(f'kin_scale={s.kinematic_scale:g}')
+        return ' '.join(parts)
+
+    def as_dict(self):
+        """Plain dictionary for reports."""
+        s = self.settings
+        return {'model': s.model, 'bias_sigma': s.bias_sigma,
+                'coherence_length': s.coherence_length, 'kinematic_scale': s.kinematic_scale,
+                'point_sigma': s.point_sigma, 'log_evidence': self.log_evidence,
+                'holdout_px': self.holdout_px, 'time_s': self.time_s, 'success': self.success,
+                'label': self.label()}
+
+
+@dataclass
+class ModelSelection:
+    """The choice: ``settings`` and its ``result``, every candidate, and why."""
+
+    settings: PriorSettings
+    result: AdjustmentResult
+    candidates: List[Candidate] = field(default_factory=list)
+    reason: str = ''
+    time_s: float = 0.0
+
+    def best_of(self, model):
+        """Return the best (highest-evidence) candidate of ``model``, or None."""
+        c = [x for x in self.candidates if x.settings.model == model and x.success]
+        return max(c, key=lambda x: x.log_evidence) if c else None
+
+
+def select_model(cameras, measured, obs: Observations, base: PriorSettings = None,
+                 settings: SolverSettings = None, kinematics=None, inliers=None,
+                 grid: Optional[Dict] = None, models=None, holdout=True,
+                 rng=None) -> ModelSelection:
+    """
+    Choose the noise model and hyperparameters by the Laplace evidence (module docstring).
+
+    ``cameras`` are warm-start estimates (normally the ``fixed`` solution), ``inliers`` its
+    inlier mask (kept for every candidate so that their evidences compare the same data).
+    ``base`` supplies the settings not searched (point sigma, kernel, lattice options).
+    ``models`` restricts the candidates; kinematic ones are dropped without ``kinematics``.
+    """
+    t0 = time.perf_counter()
+    base = replace(base or PriorSettings(), model='fixed')
+    settings = settings or SolverSettings()
+    grid = {**DEFAULT_GRID, **(grid or {})}
+    rng = rng if rng is not None else np.random.default_rng(0)
+    allowed = list(models or ('fixed', 'independent', 'correlated', 'kinematic', 'hybrid'))
+    if kinematics is None:
+        allowed = [m for m in allowed if m not in KINEMATIC_MODELS]
+    quiet = replace(settings, max_gate_rounds=0)
+    cands: List[Candidate] = []
+    seen = {}
+
+    def run(**kw):
+        ps = replace(base, **kw)
+        key = (ps.model, ps.bias_sigma, ps.coherence_length, ps.kinematic_scale)
+        if key in seen:
+            return seen[key]
+        t = time.perf_counter()
+        res = adjust(cameras, measured, obs, ps, quiet, inliers=inliers,
+                     kinematics=kinematics if ps.model in KINEMATIC_MODELS else None)
+        ok = bool(res.status != 'failed' and np.isfinite(res.log_evidence))
+        c = Candidate(ps, res.log_evidence if ok else -np.inf, time.perf_counter() - t, ok,
+                      result=res)
+        cands.append(c)
+        seen[key] = c
+        return c
+
+    def best(cs):
+        return max(cs, key=lambda c: c.log_evidence)
+
+    for m in ('fixed', 'independent'):
+        if m in allowed:
+            run(model=m)
+    kin_scale = 1.0
+    if 'kinematic' in allowed or 'hybrid' in allowed:
+        kin_scale = best([run(model='kinematic', kinematic_scale=k)
+                          for k in grid['kinematic_scale']]).settings.kinematic_scale
+    if 'correlated' in allowed:
+        sb0 = base.bias_sigma if base.bias_sigma > 0 else 1e-3
+        L = best([run(model='correlated', bias_sigma=sb0, coherence_length=L)
+                  for L in grid['coherence_length']]).settings.coherence_length
+        best([run(model='correlated', bias_sigma=sb, coherence_length=L)
+              for sb in grid['bias_sigma']])
+    if 'hybrid' in allowed:
+        sbh = sorted(grid['hybrid_bias_sigma'])[len(grid['hybrid_bias_sigma']) // 2]
+        L = best([run(model='hybrid', bias_sigma=sbh, coherence_length=L,
+                      kinematic_scale=kin_scale)
+                  for L in grid['coherence_length']]).settings.coherence_length
+        best([run(model='hybrid', bias_sigma=sb, coherence_length=L, kinematic_scale=kin_scale)
+              for sb in grid['hybrid_bias_sigma']])
+    if 'kinematic' not in allowed:
+        cands = [c for c in cands if c.settings.model != 'kinematic']
+    ok = [c for c in cands if c.success]
+    if not ok:
+        raise ValueError('no candidate model could be adjusted: ' +
+                         '; '.join(c.result.message for c in cands))
+    chosen = best(ok)
+    if holdout:
+        for m in dict.fromkeys(c.settings.model for c in ok):
+            b = best([c for c in ok if c.settings.model == m])
+            b.holdout_px = holdout_reprojection(cameras, measured, obs, b.settings, quiet,
+                                                kinematics, inliers, rng)
+    reason = _reason(chosen, ok)
+    final = adjust(chosen.result.camera_list(), measured, obs, chosen.settings, settings,
+                   points_init=chosen.result.points, inliers=inliers,
+                   kinematics=kinematics if chosen.settings.model in KINEMATIC_MODELS else None,
+                   globals_init=chosen.result.global_parameters,
+                   prior=chosen.result.prior)
+    for c in cands:
+        c.result = None if c is not chosen else c.result
+    return ModelSelection(chosen.settings, final, cands, reason, time.perf_counter() - t0)
+
+
+def _reason(chosen, ok):
+    per_model = {}
+    for c in ok:
+        m = c.settings.model
+        if m not in per_model or c.log_evidence > per_model[m].log_evidence:
+            per_model[m] = c
+    ranked = sorted(per_model.values(), key=lambda c: -c.log_evidence)
+    text = f'chose {chosen.label()} by the Laplace evidence (log {chosen.log_evidence:.1f})'
+    if len(ranked) > 1:
+        r = ranked[1]
+        text += f'; next best model {r.label()} at {r.log_evidence - chosen.log_evidence:+.1f}'
+    held = [c for c in ranked if np.isfinite(c.holdout_px)]
+    if held:
+        hb = min(held, key=lambda c: c.holdout_px)
+        text += '; held-out reprojection ' + ', '.join(
+            f'{c.settings.model} {c.holdout_px:.3f} px' for c in held)
+        if hb.settings.model != chosen.settings.model and \
+                hb.holdout_px < 0.97 * chosen.holdout_px:
+            text += f' (the held-out check prefers {hb.settings.model})'
+    return text
+
+
+def holdout_reprojection(cameras, measured, obs: Observations, prior: PriorSettings,
+                         settings: SolverSettings, kinematics=None, inliers=None, rng=None,
+                         fraction=0.2):
+    """
+    RMS pixel error of held-out points predicted by the model fitted on the rest (module doc).
+
+    A random ``fraction`` of the points is held out; the model is adjusted on the others
+    (warm-started from ``cameras``); each held-out point is predicted as X^ + the model's
+    correction and projected with the fitted cameras.
+    """
+    rng = rng if rng is not None else np.random.default_rng(0)
+    measured = np.asarray(measured, float)
+    n = measured.shape[0]
+    held = np.zeros(n, bool)
+    held[rng.choice(n, max(1, int(round(fraction * n))), replace=False)] = True
+    train = np.flatnonzero(~held)
+    remap = -np.ones(n, int)
+    remap[train] = np.arange(train.size)
+    active = np.ones(len(obs), bool) if inliers is None else np.asarray(inliers, bool)
+    sel = ~held[obs.point] & active
+    sub = Observations(obs.camera[sel], remap[obs.point[sel]], obs.uv[sel])
+    kin = kinematics.subset(train) if kinematics is not None and \
+        prior.model in KINEMATIC_MODELS else None
+    res = adjust(cameras, measured[train], sub, prior, settings, kinematics=kin)
+    if res.status == 'failed':
+        return float('nan')
+    hidx = np.flatnonzero(held)
+    jac = kinematics.jacobian[hidx] if kin is not None else None
+    pred = measured[hidx] + res.predict_offsets(measured[hidx], jac)
+    where = -np.ones(n, int)
+    where[hidx] = np.arange(hidx.size)
+    test = held[obs.point] & active
+    cams = res.camera_list()
+    err = []
+    for j, c in enumerate(cams):
+        m = test & (obs.camera == j)
+        if m.any():
+            uv = c.project(pred[where[obs.point[m]]])
+            err.append(np.sum((uv - obs.uv[m]) ** 2, axis=1))
+    if not err:
+        return float('nan')
+    return float(np.sqrt(np.mean(np.concatenate(err))))
