@@ -11,8 +11,9 @@ It rewards fit and penalises a prior that is looser than the data need, so it ca
 coherence length or a bias sigma where the fit alone would always prefer the loosest prior.
 
 The grid is searched one coordinate at a time (coherence length, then bias sigma, for the field;
-the common multiplier of the kinematic sigmas; for ``hybrid`` the kinematic multiplier of the
-best ``kinematic`` candidate and then the field), about fifteen adjustments in all.
+the common multiplier of the kinematic sigmas; for ``hybrid`` the field at the best kinematic
+multiplier, then the best correlated field with the kinematic part off, then the multiplier
+again from the better start), about twenty adjustments in all.
 
 Check: held-out reprojection.  For the best candidate of each model, a fifth of the points is
 held out, the model is fitted on the rest, the held-out points are predicted from the robot's
@@ -51,6 +52,7 @@ class Candidate:
     success: bool
     holdout_px: float = float('nan')
     result: Optional[AdjustmentResult] = None
+    cameras: Optional[list] = None          # the candidate's estimated cameras
 
     def label(self):
         """Return a short description: model and hyperparameters."""
@@ -122,7 +124,7 @@ def select_model(cameras, measured, obs: Observations, base: PriorSettings = Non
                      kinematics=kinematics if ps.model in KINEMATIC_MODELS else None)
         ok = bool(res.status != 'failed' and np.isfinite(res.log_evidence))
         c = Candidate(ps, res.log_evidence if ok else -np.inf, time.perf_counter() - t, ok,
-                      result=res)
+                      result=res, cameras=res.camera_list())
         cands.append(c)
         seen[key] = c
         return c
@@ -137,19 +139,32 @@ def select_model(cameras, measured, obs: Observations, base: PriorSettings = Non
     if 'kinematic' in allowed or 'hybrid' in allowed:
         kin_scale = best([run(model='kinematic', kinematic_scale=k)
                           for k in grid['kinematic_scale']]).settings.kinematic_scale
-    if 'correlated' in allowed:
+    corr = None
+    if 'correlated' in allowed or 'hybrid' in allowed:
         sb0 = base.bias_sigma if base.bias_sigma > 0 else 1e-3
         L = best([run(model='correlated', bias_sigma=sb0, coherence_length=L)
                   for L in grid['coherence_length']]).settings.coherence_length
-        best([run(model='correlated', bias_sigma=sb, coherence_length=L)
-              for sb in grid['bias_sigma']])
+        corr = best([run(model='correlated', bias_sigma=sb, coherence_length=L)
+                     for sb in grid['bias_sigma']]).settings
     if 'hybrid' in allowed:
+        # Coordinate ascent from the better of two starts: the best kinematic scale with a
+        # small field, and the best correlated field with the kinematic part switched off
+        # (the same model as that correlated candidate, so hybrid can only gain on it).
         sbh = sorted(grid['hybrid_bias_sigma'])[len(grid['hybrid_bias_sigma']) // 2]
-        L = best([run(model='hybrid', bias_sigma=sbh, coherence_length=L,
-                      kinematic_scale=kin_scale)
-                  for L in grid['coherence_length']]).settings.coherence_length
-        best([run(model='hybrid', bias_sigma=sb, coherence_length=L, kinematic_scale=kin_scale)
-              for sb in grid['hybrid_bias_sigma']])
+        h = best([run(model='hybrid', bias_sigma=sbh, coherence_length=L,
+                      kinematic_scale=kin_scale) for L in grid['coherence_length']])
+        h = best([h] + [run(model='hybrid', bias_sigma=sb, kinematic_scale=kin_scale,
+                            coherence_length=h.settings.coherence_length)
+                        for sb in grid['hybrid_bias_sigma']])
+        if corr is not None:
+            h = best([h, run(model='hybrid', bias_sigma=corr.bias_sigma, kinematic_scale=0.0,
+                             coherence_length=corr.coherence_length)])
+        hs = h.settings
+        best([h] + [run(model='hybrid', bias_sigma=hs.bias_sigma, kinematic_scale=k,
+                        coherence_length=hs.coherence_length)
+                    for k in (0.0,) + tuple(grid['kinematic_scale'])])
+    if 'correlated' not in allowed:
+        cands = [c for c in cands if c.settings.model != 'correlated']
     if 'kinematic' not in allowed:
         cands = [c for c in cands if c.settings.model != 'kinematic']
     ok = [c for c in cands if c.success]
