@@ -52,7 +52,7 @@ PIXEL_SIGMA = 0.3
 
 
 def mount_free_truth(prob):
-    """True test markers with the base joint's (unobservable) mounting errors removed."""
+    """Return the true test markers without the base joint's (unobservable) mounting errors."""
     r = prob.robot
     e = r.errors.copy()
     e[:7] = 0.0
