@@ -1,0 +1,338 @@
+"""
+Calibrate cameras from a board (many points per pose) carried by a link with measured poses.
+
+Data: per view v the link pose T_base_link_v (forward kinematics or a measured pose), and per
+camera the detected board corners (id k, pixel uv).  Each (view, corner) seen by any camera is
+one 3-D point of the adjustment, X^_vk = T_base_link_v T_link_target p_k
+(:mod:`armcal_ros.core.target`); several cameras seeing it share the point.
+
+Sequence:
+
+1. Initialise (no guess needed): per camera, every view's board pose from its corners (Zhang's
+   planar calibration for rough intrinsics, or PnP with given ones), then the hand-eye closed
+   form for the camera pose T_camera_base and the mount T_link_target.  A guess of the mount
+   replaces the hand-eye one as the seed.
+2. Mount estimation (``MountSettings.estimate``): the six mount corrections are global
+   parameters of the adjustment with the design d X^ / d(t, r) and a loose Gaussian prior
+   (:class:`~armcal_ros.core.kinematic_prior.KinematicData`): ``fixed`` becomes "points =
+   X^ + J dp" (a 1 um point sigma), ``independent`` the same with its point sigma, and
+   ``correlated`` adds the lattice field next to them (the ``hybrid`` form of the prior).  The
+   design is linear in dp, the mount is not: after each solve the estimate is folded into
+   T_link_target and the problem is re-linearised there until the correction is below
+   ``tolerance`` (2-4 rounds from a centimetre/degree start).  Each round re-centres the prior
+   on the current mount, so the prior only regularises the step; with the default sigmas
+   (5 cm, 10 deg) it is far looser than the data anyway.
+3. Without mount estimation the given T_link_target is held and the chosen model is solved as
+   for any point target.
+
+With ``auto`` the mount comes from the ``fixed`` stage and is then held while the model is chosen.
+"""
+
+from dataclasses import dataclass, field, replace
+from typing import Dict, List, Optional, Sequence
+
+import numpy as np
+
+from armcal_ros.core.adjustment import Observations, SolverSettings
+from armcal_ros.core.calibration import calibrate, CalibrationResult, CameraSpec
+from armcal_ros.core.camera import Camera, DISTORTION_NAMES
+from armcal_ros.core.kinematic_prior import KinematicData
+from armcal_ros.core.priors import PriorSettings
+from armcal_ros.core.target import (board_view_poses, correct_mount, hand_eye, HandEye,
+                                    mount_jacobian, mount_points, MOUNT_NAMES)
+
+
+@dataclass
+class BoardData:
+    """
+    Board observations.
+
+    ``poses`` (V, 4, 4) T_base_link per view; ``points`` (P, 3) board points in the target
+    frame (row = corner id); per observation m: ``view`` (M,), ``camera`` (M,) index into the
+    camera list, ``corner`` (M,) corner id, ``uv`` (M, 2) pixels.
+    """
+
+    poses: np.ndarray
+    points: np.ndarray
+    view: np.ndarray
+    camera: np.ndarray
+    corner: np.ndarray
+    uv: np.ndarray
+
+    def __post_init__(self):
+        self.poses = np.asarray(self.poses, float)
+        self.points = np.asarray(self.points, float)
+        self.view = np.asarray(self.view, np.int64).reshape(-1)
+        self.camera = np.asarray(self.camera, np.int64).reshape(-1)
+        self.corner = np.asarray(self.corner, np.int64).reshape(-1)
+        self.uv = np.asarray(self.uv, float).reshape(-1, 2)
+        m = len(self.view)
+        if self.poses.ndim != 3 or self.poses.shape[1:] != (4, 4):
+            raise ValueError(f'poses must have shape (V, 4, 4), got {self.poses.shape}')
+        if self.points.ndim != 2 or self.points.shape[1] != 3:
+            raise ValueError(f'points must have shape (P, 3), got {self.points.shape}')
+        for name in ('camera', 'corner'):
+            if getattr(self, name).shape != (m,):
+                raise ValueError(f'{name} must have shape ({m},) like view, got '
+                                 f'{getattr(self, name).shape}')
+        if self.uv.shape != (m, 2) or not np.all(np.isfinite(self.uv)):
+            raise ValueError(f'uv must be finite with shape ({m}, 2), got {self.uv.shape}')
+        if m and (self.view.min() < 0 or self.view.max() >= len(self.poses)):
+            raise ValueError(f'view must index the {len(self.poses)} poses')
+        if m and (self.corner.min() < 0 or self.corner.max() >= len(self.points)):
+            raise ValueError(f'corner must index the {len(self.points)} board points')
+
+    def __len__(self):
+        return len(self.view)
+
+    def select(self, mask):
+        """Return the observations selected by a mask or index array (poses kept)."""
+        return BoardData(self.poses, self.points, self.view[mask], self.camera[mask],
+                         self.corner[mask], self.uv[mask])
+
+    def point_table(self):
+        """Return (point_view (N,), point_corner (N,), point index per observation (M,))."""
+        key = self.view * len(self.points) + self.corner
+        uniq, inv = np.unique(key, return_inverse=True)
+        return uniq // len(self.points), uniq % len(self.points), inv.reshape(-1)
+
+
+@dataclass
+class MountSettings:
+    """
+    How T_link_target is treated: estimated or held, and the prior of its correction.
+
+    ``sigma_translation`` (m) and ``sigma_rotation`` (rad) are prior standard deviations of
+    the correction of the seed; ``fixed_point_sigma`` (m) is the point sigma that stands for
+    "points exactly at X^ + J dp" under the ``fixed`` model.
+    """
+
+    estimate: bool = True
+    sigma_translation: float = 0.05
+    sigma_rotation: float = np.radians(10.0)
+    fixed_point_sigma: float = 1e-6
+    max_rounds: int = 10
+    tolerance: float = 1e-7
+
+    def validate(self):
+        """Raise ValueError naming the first bad setting; return self."""
+        for name in ('sigma_translation', 'sigma_rotation', 'fixed_point_sigma', 'tolerance'):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f'mount {name} must be > 0, got {v}')
+        if self.max_rounds < 1:
+            raise ValueError(f'mount max_rounds must be >= 1, got {self.max_rounds}')
+        return self
+
+    def sigma(self):
+        """Return the (6,) prior sigmas of (t, r)."""
+        return np.array([self.sigma_translation] * 3 + [self.sigma_rotation] * 3)
+
+
+@dataclass
+class BoardInit:
+    """How the cameras and the mount were initialised, per camera."""
+
+    method: Dict[str, str] = field(default_factory=dict)
+    view_rms_px: Dict[str, float] = field(default_factory=dict)
+    hand_eye: Dict[str, HandEye] = field(default_factory=dict)
+    mount_seed: str = ''
+
+
+@dataclass
+class BoardCalibrationResult:
+    """
+    Result of :func:`calibrate_board`.
+
+    ``calibration`` the final :class:`CalibrationResult` (its points are the (view, corner)
+    points ``point_view`` / ``point_corner``); ``T_link_target`` the mount used or estimated,
+    ``mount_std`` (6,) standard deviations of its last correction (t in m, r in rad) when
+    estimated; ``rounds`` re-linearisation rounds; ``model`` the prior actually solved.
+    """
+
+    calibration: CalibrationResult
+    T_link_target: np.ndarray
+    mount_std: Optional[np.ndarray]
+    init: BoardInit
+    point_view: np.ndarray
+    point_corner: np.ndarray
+    measured: np.ndarray
+    observations: Observations
+    rounds: int = 0
+    model: str = ''
+    stages: List[str] = field(default_factory=list)
+
+    @property
+    def success(self):
+        """Return True if the final adjustment converged."""
+        return bool(self.calibration.success)
+
+    @property
+    def cameras(self):
+        """Estimated cameras by name."""
+        return self.calibration.cameras
+
+    def predict_uv(self, data: BoardData, camera_names: Sequence[str]):
+        """
+        Return predicted pixels (M, 2) of ``data``'s observations (NaN for unknown cameras).
+
+        Points are X^ from the estimated mount plus, for the correlated model, the fitted
+        field's prediction there - a held-out view's honest prediction.
+        """
+        pv, pc, pidx = data.point_table()
+        X = mount_points(data.poses, self.T_link_target, pv, data.points[pc])
+        adj = self.calibration.adjustment
+        if adj is not None and adj.prior is not None and adj.prior.kind in ('global', 'dense'):
+            # The mount correction is already folded into T_link_target: zero design.
+            X = X + adj.predict_offsets(X, np.zeros((len(X), 3, 6)))
+        out = np.full((len(data), 2), np.nan)
+        cams = self.cameras
+        for j, name in enumerate(camera_names):
+            sel = data.camera == j
+            if name in cams and sel.any():
+                out[sel] = cams[name].project(X[pidx[sel]])
+        return out
+
+
+def _views_of(data: BoardData, j):
+    sel = data.camera == j
+    out = {}
+    for v in np.unique(data.view[sel]):
+        m = sel & (data.view == v)
+        out[int(v)] = (data.points[data.corner[m]], data.uv[m])
+    return out
+
+
+def initialise_board_cameras(specs: Sequence[CameraSpec], data: BoardData,
+                             free_distortion=('k1', 'k2'), intrinsics=None):
+    """
+    Return ({name: Camera}, {name: HandEye}, BoardInit) from board views alone.
+
+    ``intrinsics`` optionally maps camera names to (K (3, 3), dist (5,) or None) to use
+    instead of Zhang's estimate.  Distortion terms that will not be estimated are zeroed.
+    Cameras with fewer than 3 usable views are left out (their message is in ``init.method``).
+    """
+    cams, hes = {}, {}
+    init = BoardInit()
+    keep_d = np.array([d in free_distortion for d in DISTORTION_NAMES])
+    for j, spec in enumerate(specs):
+        views = _views_of(data, j)
+        guess = (intrinsics or {}).get(spec.name)
+        try:
+            vp = board_view_poses(views, spec.width, spec.height,
+                                  K=None if guess is None else guess[0],
+                                  dist=None if guess is None else guess[1])
+            keys = sorted(vp.T_cam_target)
+            he = hand_eye(data.poses[keys], [vp.T_cam_target[k] for k in keys])
+        except ValueError as exc:
+            init.method[spec.name] = f'not initialised: {exc}'
+            continue
+        K = vp.K
+        dist = np.where(keep_d, np.asarray(vp.dist, float).reshape(-1)[:5], 0.0)
+        cams[spec.name] = Camera(spec.name, spec.width, spec.height, K[0, 0], K[1, 1], K[0, 2],
+                                 K[1, 2], dist, he.T_camera_base[:3, :3],
+                                 he.T_camera_base[:3, 3])
+        hes[spec.name] = he
+        init.method[spec.name] = vp.method
+        init.view_rms_px[spec.name] = vp.rms_px
+    init.hand_eye = hes
+    return cams, hes, init
+
+
+def _mount_prior(model, prior: PriorSettings, mount: MountSettings):
+    if model == 'fixed':
+        return replace(prior, model='kinematic', point_sigma=mount.fixed_point_sigma)
+    if model == 'independent':
+        return replace(prior, model='kinematic')
+    if model == 'correlated':
+        return replace(prior, model='hybrid')
+    raise ValueError(f'noise_model {model!r} cannot estimate a board mount from pose input '
+                     '(use fixed, independent, correlated or auto)')
+
+
+def calibrate_board(specs: Sequence[CameraSpec], data: BoardData, prior: PriorSettings = None,
+                    settings: SolverSettings = None, T_link_target=None,
+                    mount: MountSettings = None, initial: Optional[Dict[str, Camera]] = None,
+                    intrinsics=None, rng=None) -> BoardCalibrationResult:
+    """
+    Calibrate ``specs`` from board observations ``data`` (module docstring for the sequence).
+
+    ``T_link_target`` (4, 4) seeds (or, without mount estimation, fixes) the mount; None finds
+    it by hand-eye.  ``initial`` warm-starts cameras by name (else they are initialised from
+    the board views); ``intrinsics`` maps names to (K, dist) for the view-pose step.
+    Raises ValueError for unusable input (no camera initialised, no mount without estimation).
+    """
+    prior = (prior or PriorSettings()).validate()
+    settings = (settings or SolverSettings()).validate()
+    mount = (mount or MountSettings()).validate()
+    if not len(data):
+        raise ValueError('board data has no observations')
+    if T_link_target is None and not mount.estimate:
+        raise ValueError('T_link_target is needed when the mount is not estimated '
+                         '(estimate_marker_offset false)')
+    initial = dict(initial or {})
+    cams_init, hes, init = initialise_board_cameras(specs, data, settings.free_distortion,
+                                                    intrinsics)
+    for name, cam in cams_init.items():
+        initial.setdefault(name, cam)
+    if not initial:
+        raise ValueError('no camera could be initialised from the board views: ' +
+                         '; '.join(f'{k}: {v}' for k, v in init.method.items()))
+    if T_link_target is not None:
+        T = np.asarray(T_link_target, float)
+        init.mount_seed = 'given'
+    else:
+        best = max(hes, key=lambda k: hes[k].n_views)
+        T = hes[best].T_link_target
+        init.mount_seed = f'hand-eye ({best})'
+    pv, pc, pidx = data.point_table()
+    obs = Observations(data.camera, pidx, data.uv)
+    stages = []
+
+    def solve(model_prior, T, cams, estimate):
+        X = mount_points(data.poses, T, pv, data.points[pc])
+        kin = None
+        if estimate:
+            kin = KinematicData(mount_jacobian(data.poses, T, pv, data.points[pc]),
+                                list(MOUNT_NAMES), mount.sigma())
+        res = calibrate(specs, X, obs, model_prior, settings, initial=cams, rng=rng,
+                        kinematics=kin)
+        return res, X
+
+    def estimate_mount(model_prior, T, cams):
+        res, X, std, k = None, None, None, 0
+        for k in range(1, mount.max_rounds + 1):
+            res, X = solve(model_prior, T, cams, True)
+            adj = res.adjustment
+            if adj is None or adj.kinematic_errors is None:
+                break
+            dp = np.array([adj.kinematic_errors[n] for n in MOUNT_NAMES])
+            std = np.array([adj.kinematic_std[n] for n in MOUNT_NAMES])
+            T = correct_mount(T, dp)
+            cams = {**cams, **res.cameras}
+            stages.append(f'{model_prior.model}+mount round {k}: |dt| '
+                          f'{np.linalg.norm(dp[:3]) * 1e3:.3f} mm, |dr| '
+                          f'{np.degrees(np.linalg.norm(dp[3:])):.4f} deg')
+            if np.max(np.abs(dp)) < mount.tolerance:
+                break
+        return res, X, T, std, k, cams
+
+    std, rounds, solved = None, 0, prior.model
+    if mount.estimate:
+        fixed_prior = _mount_prior('fixed', prior, mount)
+        res, X, T, std, rounds, cams = estimate_mount(fixed_prior, T, initial)
+        if prior.model in ('independent', 'correlated'):
+            res, X, T, std, r2, cams = estimate_mount(_mount_prior(prior.model, prior, mount),
+                                                      T, cams)
+            rounds += r2
+            solved = f'{prior.model}+mount'
+        elif prior.model == 'auto':
+            res, X = solve(prior, T, cams, False)
+            stages.append('auto with the mount of the fixed stage')
+        elif prior.model != 'fixed':
+            _mount_prior(prior.model, prior, mount)       # raises with the reason
+        else:
+            solved = 'fixed+mount'
+    else:
+        res, X = solve(prior, T, initial, False)
+    return BoardCalibrationResult(res, T, std, init, pv, pc, X, obs, rounds, solved, stages)
