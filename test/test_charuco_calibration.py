@@ -26,7 +26,7 @@ BOARD = CharucoBoard(7, 5, 0.036, 0.018, 'DICT_6X6_250')
 
 
 def make_scene(n_views=14, noise_px=0.2, seed=1, width=1600, height=1200, cameras=1):
-    """Static camera(s); the board on a link, posed to face the first camera."""
+    """Make static camera(s) and views of a board on a link, posed to face camera 0."""
     rng = np.random.default_rng(seed)
     cams = []
     for j in range(cameras):
