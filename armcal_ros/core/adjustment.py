@@ -256,6 +256,8 @@ class _Problem:
         self.optimise_points = prior.kind != 'fixed'
         self.by_camera = [np.flatnonzero((obs.camera == j) & active)
                           for j in range(len(cameras))]
+        # Whether each camera sees each point at most once (then scatter-adds are plain writes).
+        self.unique = [np.unique(obs.point[idx]).size == idx.size for idx in self.by_camera]
         if prior.kind == 'dense':
             self.P_dense = np.kron(prior.scalar_precision(), np.eye(3))
         self.n_global = prior.n_global if prior.kind == 'global' else 0
@@ -307,18 +309,23 @@ class _Problem:
             Jc = lay.camera_jacobian(J)                          # (m, 2, pc)
             wJc = Jc * w[:, None, None]
             sl = slice(j * pc, (j + 1) * pc)
-            U[sl, sl] = np.einsum('mki,mkj->ij', wJc, Jc)
-            g_c[sl] = np.einsum('mki,mk->i', wJc, r)
+            m2 = 2 * idx.size
+            U[sl, sl] = wJc.reshape(m2, pc).T @ Jc.reshape(m2, pc)
+            g_c[sl] = wJc.reshape(m2, pc).T @ r.reshape(m2)
             if self.optimise_points:
                 Jx = J.d_point
                 wJx = Jx * w[:, None, None]
-                blocks = np.einsum('mki,mkj->mij', wJc, Jx)      # (m, pc, 3)
-                if np.unique(pts).size == pts.size:
+                blocks = np.matmul(wJc.transpose(0, 2, 1), Jx)   # (m, pc, 3)
+                vb = np.matmul(wJx.transpose(0, 2, 1), Jx)
+                gx = np.matmul(wJx.transpose(0, 2, 1), r[:, :, None])[:, :, 0]
+                if self.unique[j]:
                     W[sl, pts, :] = blocks.transpose(1, 0, 2)
+                    Vb[pts] += vb
+                    g_x[pts] += gx
                 else:
                     np.add.at(W, (sl, pts), blocks.transpose(1, 0, 2))
-                np.add.at(Vb, pts, np.einsum('mki,mkj->mij', wJx, Jx))
-                np.add.at(g_x, pts, np.einsum('mki,mk->mi', wJx, r))
+                    np.add.at(Vb, pts, vb)
+                    np.add.at(g_x, pts, gx)
         g_g = np.zeros(self.n_global)
         if self.prior.kind == 'global':
             p = self.prior.precision
@@ -364,19 +371,19 @@ class _Problem:
             dV = np.diagonal(V, axis1=1, axis2=2).copy()
             V[:, [0, 1, 2], [0, 1, 2]] += lam * np.maximum(dV, 1e-12)
         E = np.linalg.inv(V)
-        WE = np.einsum('pnk,nkl->pnl', W, E)
+        WEt = np.matmul(W.transpose(1, 0, 2), E)             # (n, C, 3): W_i E_i
         Wm = W.reshape(C, 3 * n)
         dU = np.diag(U).copy()
         dU[dU <= 0] = 1e-12
-        S_cc = U + np.diag(lam * dU) - WE.reshape(C, 3 * n) @ Wm.T
-        rhs_c = -g_c + WE.reshape(C, 3 * n) @ g_x.reshape(-1)
+        S_cc = U + np.diag(lam * dU) - WEt.transpose(1, 0, 2).reshape(C, 3 * n) @ Wm.T
+        rhs_c = -g_c + np.einsum('nck,nk->c', WEt, g_x)
         G = self.n_global
         if not G:
             return S_cc, rhs_c, E
         design = self.prior.design
         Cg = p[:, None, None] * np.eye(3) - (p * p)[:, None, None] * E
         S_gg = design.gram(Cg) + np.eye(G) + np.diag(lam * self.H_gg_diag)
-        S_gc = design.cross(p[:, None, None] * WE.transpose(1, 2, 0))
+        S_gc = design.cross(p[:, None, None] * WEt.transpose(0, 2, 1))
         rhs_g = -g_g - design.apply_T(p[:, None] * np.einsum('nkl,nl->nk', E, g_x))
         S = np.empty((C + G, C + G))
         S[:C, :C] = S_cc

@@ -178,14 +178,18 @@ class LatticeField:
     def gram(self, C):
         """Return sum_i A_i^T C_i A_i for C (N, 3, 3): (3 r, 3 r)."""
         r = self.rank
-        out = np.empty((r, 3, r, 3))
         F = self.features
-        for a in range(3):
-            for b in range(a, 3):
-                M = F.T @ (C[:, a, b, None] * F)
-                out[:, a, :, b] = M
-                if b != a:
-                    out[:, b, :, a] = M
+        pairs = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+        # One (r x N) @ (N x 6r) product instead of six: the same flops, better BLAS use.
+        cF = np.empty((self.n, len(pairs), r))
+        for k, (a, b) in enumerate(pairs):
+            np.multiply(C[:, a, b, None], F, out=cF[:, k, :])
+        M = (F.T @ cF.reshape(self.n, -1)).reshape(r, len(pairs), r)
+        out = np.empty((r, 3, r, 3))
+        for k, (a, b) in enumerate(pairs):
+            out[:, a, :, b] = M[:, k, :]
+            if b != a:
+                out[:, b, :, a] = M[:, k, :]
         return out.reshape(self.size, self.size)
 
 
