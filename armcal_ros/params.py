@@ -23,7 +23,7 @@ from armcal_ros.core.priors import KERNELS, NOISE_MODELS, PriorSettings
 from armcal_ros.core.robust import LOSSES
 
 NAME_RE = re.compile(r'^[A-Za-z0-9_]+$')
-MARKER_TYPES = ('sphere', 'aruco')
+MARKER_TYPES = ('sphere', 'aruco', 'charuco')
 NODE_NAME = 'armcal'
 
 
@@ -82,6 +82,16 @@ def _distortion(v):
     return f'unknown terms {bad}; allowed {list(DISTORTION_NAMES)}' if bad else None
 
 
+def _pose7(v):
+    if len(v) == 0:
+        return None
+    if len(v) != 7 or not all(math.isfinite(x) for x in v):
+        return 'must be empty or [x, y, z, qx, qy, qz, qw]'
+    if abs(math.sqrt(sum(x * x for x in v[3:])) - 1.0) > 1e-3:
+        return 'its quaternion must have unit length'
+    return None
+
+
 PARAMS = [
     # The contract (DESIGN.md section 5).
     Param('robot_description', 'string', '', 'URDF text of the robot (ROS convention)'),
@@ -92,7 +102,7 @@ PARAMS = [
     Param('marker_link', 'string', 'tool0', 'link the marker is attached to'),
     Param('marker_offset', 'double[]', [0.0, 0.0, 0.0],
           'marker (sphere or tag centre) position in marker_link, metres', _vec3),
-    Param('marker_type', 'string', 'sphere', 'marker detector: sphere or aruco',
+    Param('marker_type', 'string', 'sphere', 'marker detector: sphere, aruco or charuco',
           _one_of(MARKER_TYPES)),
     Param('joint_states_topic', 'string', '/joint_states', 'sensor_msgs/JointState topic'),
     Param('camera_names', 'string[]', ['cam1', 'cam2', 'cam3'],
@@ -152,6 +162,28 @@ PARAMS = [
           'if not empty, one sensor_msgs/srv/SetCameraInfo service per camera to commit each '
           'accepted calibration to its driver (e.g. /cam1/set_camera_info)'),
     Param('resume', 'bool', True, 'reload saved samples and calibration from output_dir'),
+    # Board targets and pose input.
+    Param('charuco_rows', 'int', 0, 'ChArUco board squares per column (0: unset; a '
+          'robot_cal_tools folder takes it from target.yaml)',
+          lambda v: None if v == 0 or v >= 2 else 'must be 0 (unset) or >= 2', minimum=0),
+    Param('charuco_cols', 'int', 0, 'ChArUco board squares per row (0: unset)',
+          lambda v: None if v == 0 or v >= 2 else 'must be 0 (unset) or >= 2', minimum=0),
+    Param('charuco_square_size', 'double', 0.0, 'ChArUco square side, metres (0: unset)',
+          _nonneg, minimum=0.0),
+    Param('charuco_marker_size', 'double', 0.0, 'ChArUco marker side, metres (0: unset)',
+          _nonneg, minimum=0.0),
+    Param('charuco_dictionary', 'string', 'DICT_6X6_250', 'ChArUco ArUco dictionary'),
+    Param('charuco_legacy_pattern', 'bool', False,
+          'board made for OpenCV < 4.6 (robot_cal_tools): its corner numbering, frame (y up '
+          'from the bottom row) and square pattern'),
+    Param('estimate_marker_offset', 'bool', False,
+          'estimate the target\'s pose on marker_link (T_link_target) from the data'),
+    Param('target_pose_guess', 'double[]', [],
+          'T_link_target of a board as [x, y, z, qx, qy, qz, qw] (seed when estimated; empty: '
+          'found by hand-eye, or the data set\'s own guess)', _pose7),
+    Param('pose_topic', 'string', '',
+          'geometry_msgs PoseStamped or TransformStamped topic with marker_link\'s pose in '
+          'base_frame; when set it replaces joint states and the robot model (pose input)'),
 ]
 BY_NAME = {p.name: p for p in PARAMS}
 
@@ -202,8 +234,13 @@ def check_value(name, value):
     return v
 
 
-def check_all(values: Dict[str, Any]):
-    """Check the cross-parameter rules; raise ValueError naming the parameters."""
+def check_all(values: Dict[str, Any], require_robot_model=True):
+    """
+    Check the cross-parameter rules; raise ValueError naming the parameters.
+
+    A robot model is not needed with pose input (``pose_topic``) or when the caller reads
+    poses from elsewhere (``require_robot_model`` False, e.g. a robot_cal_tools folder).
+    """
     cams, topics = values['camera_names'], values['image_topics']
     if len(cams) != len(topics):
         raise ValueError(f'parameters camera_names and image_topics must have the same length, '
@@ -214,7 +251,8 @@ def check_all(values: Dict[str, Any]):
                          f'per camera ({len(cams)}), got {len(svc)}')
     if values['sphere_min_radius_px'] >= values['sphere_max_radius_px']:
         raise ValueError('parameters sphere_min_radius_px must be < sphere_max_radius_px')
-    if not values['robot_description'] and not values['robot_description_file']:
+    if require_robot_model and not values['pose_topic'] and \
+            not values['robot_description'] and not values['robot_description_file']:
         raise ValueError('parameters robot_description or robot_description_file: one must be '
                          'set (URDF text, or a path to a URDF file)')
 
@@ -225,13 +263,14 @@ def defaults():
             for p in PARAMS}
 
 
-def load_params_file(path, node_name=NODE_NAME):
+def load_params_file(path, node_name=NODE_NAME, require_robot_model=True):
     """
     Read a ROS 2 parameter file and return the checked values (defaults filled in).
 
     Accepts ``<node_name>: ros__parameters:`` and ``/**: ros__parameters:`` (both merged, the
     node's own taking precedence) and ``/<node_name>``.  Unknown parameter names are an error
-    naming them.  A relative ``robot_description_file`` is resolved against the file's directory.
+    naming them.  ``require_robot_model`` is passed to :func:`check_all`.  A relative
+    ``robot_description_file`` is resolved against the file's directory.
     """
     try:
         with open(path) as f:
@@ -261,7 +300,7 @@ def load_params_file(path, node_name=NODE_NAME):
     if rel and not os.path.isabs(rel):
         values['robot_description_file'] = os.path.normpath(
             os.path.join(os.path.dirname(os.path.abspath(path)), rel))
-    check_all(values)
+    check_all(values, require_robot_model)
     return values
 
 
@@ -295,3 +334,29 @@ def solver_settings(values) -> SolverSettings:
                           free_distortion=tuple(values['free_distortion']),
                           loss=values['robust_loss'], loss_scale=values['robust_loss_scale'],
                           gate_sigmas=values['outlier_gate_sigmas']).validate()
+
+
+def charuco_settings(values, target=None):
+    """
+    Return the ChArUco board keyword arguments from parameter values.
+
+    ``target`` (rows, cols, square_size, marker_size, dictionary) from a data set's own target
+    description fills unset values; a set value that disagrees with it is an error naming it.
+    """
+    out = dict(rows=values['charuco_rows'], cols=values['charuco_cols'],
+               square_size=values['charuco_square_size'],
+               marker_size=values['charuco_marker_size'],
+               dictionary=values['charuco_dictionary'], legacy=values['charuco_legacy_pattern'])
+    if target is not None:
+        for k, v in zip(('rows', 'cols', 'square_size', 'marker_size'), target[:4]):
+            if out[k] == 0:
+                out[k] = v
+            elif not math.isclose(out[k], v, rel_tol=1e-6):
+                raise ValueError(f'parameter charuco_{k}: {out[k]} disagrees with the data '
+                                 f'set\'s target ({v})')
+        out['dictionary'] = target[4]
+    unset = [f'charuco_{k}' for k in ('rows', 'cols', 'square_size', 'marker_size')
+             if out[k] == 0]
+    if unset:
+        raise ValueError(f'parameters {", ".join(unset)} must be set for a charuco target')
+    return out
