@@ -50,7 +50,7 @@ def split(prob, n_first):
 
 
 def prior_for(model):
-    """PriorSettings of a row (hybrid with the mixed scenario's field, as auto picks it)."""
+    """Return the PriorSettings of a row (hybrid: the mixed field, as auto picks it)."""
     if model == 'correlated (exact)':
         return PriorSettings('correlated', field_form='exact')
     if model == 'hybrid':

@@ -72,8 +72,9 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
     ``kinematics`` (:class:`~armcal_ros.core.kinematic_prior.KinematicData`, from joint
     angles) enables the 'kinematic' and 'hybrid' models; ``globals_init`` warm-starts their
     global parameters and ``points_init`` (N, 3) the points (with a warm start, the previous
-    adjusted points - new ones at their prediction - save most of the iterations).  With ``prior.model == 'auto'`` the model and its hyperparameters are
-    chosen by :func:`~armcal_ros.core.model_selection.select_model` after the ``fixed`` stage
+    adjusted points - new ones at their prediction - save most of the iterations).  With
+    ``prior.model == 'auto'`` the model and its hyperparameters are chosen by
+    :func:`~armcal_ros.core.model_selection.select_model` after the ``fixed`` stage
     (``result.selection`` says what was chosen and why).
     """
     t0 = time.perf_counter()
