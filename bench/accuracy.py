@@ -69,8 +69,8 @@ def score(cams, prob, truth_mf):
     uv = [prob.truth[k].project(prob.test_points) for k in names]
     X = triangulate([est[k] for k in names], uv)
     ok = np.all(np.isfinite(X), axis=1)
-    return dict(absolute_mm=sc.absolute_mm, mount_free_mm=1e3 * absolute_error(X[ok],
-                                                                                 truth_mf[ok]),
+    mount_free = 1e3 * absolute_error(X[ok], truth_mf[ok])
+    return dict(absolute_mm=sc.absolute_mm, mount_free_mm=mount_free,
                 shape_mm=sc.shape_mm, centre_mm=sc.centre_mm, focal_pct=sc.focal_pct,
                 reprojection_px=sc.reprojection_px)
 
