@@ -232,7 +232,9 @@ def format_table(report):
 
 def add_arguments(p):
     """Arguments of ``armcal calibrate``."""
-    p.add_argument('bag', metavar='BAG', help='rosbag2 bag directory (mcap or sqlite3)')
+    p.add_argument('bag', metavar='BAG',
+                   help='rosbag2 bag directory (mcap or sqlite3), or a robot_cal_tools data '
+                   'folder (cal_data.yaml, images, poses, target.yaml)')
     p.add_argument('--params', required=True, metavar='PARAMS.yaml',
                    help='the node\'s ROS 2 parameter file (armcal: ros__parameters: ...)')
     p.add_argument('--output', required=True, metavar='DIR', help='where to write the files')
@@ -243,9 +245,11 @@ def add_arguments(p):
 
 def run(args):
     """Run ``armcal calibrate``; return the exit status (errors raise with a one-line reason)."""
+    from armcal_ros.io.rct_import import is_rct_folder
     from armcal_ros.params import check_value
+    rct = is_rct_folder(args.bag)
     try:
-        values = load_params_file(args.params)
+        values = load_params_file(args.params, require_robot_model=not rct)
         if args.noise_model is not None:
             values['noise_model'] = check_value('noise_model', args.noise_model)
     except ValueError as exc:
@@ -260,6 +264,19 @@ def run(args):
         if not args.quiet:
             print(f'\n[armcal] {message}', file=sys.stderr)
 
+    if rct:
+        from armcal_ros.board_pipeline import BoardPipelineError, calibrate_rct_folder
+        try:
+            report, files, _ = calibrate_rct_folder(args.bag, values, args.output, log)
+        except BoardPipelineError as exc:
+            raise CalibrateError(str(exc)) from exc
+        print(format_table(report))
+        tgt = report['target']
+        print(f'T_{values["marker_link"]}_target (x y z qx qy qz qw): ' +
+              ' '.join(f'{v:.5f}' for v in tgt['T_link_target']) +
+              (' (estimated)' if tgt['estimated'] else ' (given)'))
+        print(f'wrote {", ".join(os.path.basename(f) for f in files)} to {args.output}')
+        return 0
     res = calibrate_bag(args.bag, values, args.output, progress, log)
     if not args.quiet:
         print('', file=sys.stderr)
