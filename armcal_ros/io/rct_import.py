@@ -179,7 +179,8 @@ def pose_vector(T):
     """Return [x, y, z, qx, qy, qz, qw] of a 4x4 pose."""
     from scipy.spatial.transform import Rotation
     T = np.asarray(T, float)
-    return list(T[:3, 3]) + list(Rotation.from_matrix(T[:3, :3]).as_quat())
+    return [float(x) for x in T[:3, 3]] + \
+        [float(x) for x in Rotation.from_matrix(T[:3, :3]).as_quat()]
 
 
 def save_views(path, data: RctDataSet, uvs, ids, size, extra=None, decimals=2):
