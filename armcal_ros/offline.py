@@ -277,6 +277,18 @@ def run(args):
               (' (estimated)' if tgt['estimated'] else ' (given)'))
         print(f'wrote {", ".join(os.path.basename(f) for f in files)} to {args.output}')
         return 0
+    if values['pose_topic']:
+        if values['marker_type'] != 'charuco':
+            raise CalibrateError('pose input (pose_topic) is implemented for charuco targets; '
+                                 f'marker_type is {values["marker_type"]}')
+        from armcal_ros.board_pipeline import BoardPipelineError, calibrate_board_bag
+        try:
+            report, files, _ = calibrate_board_bag(args.bag, values, args.output, log)
+        except BoardPipelineError as exc:
+            raise CalibrateError(str(exc)) from exc
+        print(format_table(report))
+        print(f'wrote {", ".join(os.path.basename(f) for f in files)} to {args.output}')
+        return 0
     res = calibrate_bag(args.bag, values, args.output, progress, log)
     if not args.quiet:
         print('', file=sys.stderr)
