@@ -277,6 +277,9 @@ def run(args):
               (' (estimated)' if tgt['estimated'] else ' (given)'))
         print(f'wrote {", ".join(os.path.basename(f) for f in files)} to {args.output}')
         return 0
+    if values['marker_type'] == 'charuco' and not values['pose_topic']:
+        raise CalibrateError('marker_type charuco needs pose input (set pose_topic) or a '
+                             'robot_cal_tools folder; with joint states use sphere or aruco')
     if values['pose_topic']:
         if values['marker_type'] != 'charuco':
             raise CalibrateError('pose input (pose_topic) is implemented for charuco targets; '

@@ -23,6 +23,11 @@ from armcal_ros.robot.kinematics import KinematicChain
 
 def make_detectors(values, camera_names):
     """One detector per camera (each tracks its own marker position) from parameter values."""
+    if values['marker_type'] == 'charuco':
+        # The joint-state front end pools one point per target id at the FK marker position;
+        # a board's corners need the board path (pose input or a robot_cal_tools folder).
+        raise ValueError('parameter marker_type: charuco works with pose input (pose_topic) '
+                         'or a robot_cal_tools folder; with joint states use sphere or aruco')
     out = {}
     for name in camera_names:
         if values['marker_type'] == 'sphere':

@@ -104,3 +104,15 @@ def test_pose_input_needs_a_board_and_the_topic(bag, tmp_path):
     with pytest.raises(CalibrateError, match='charuco_rows'):
         run(argparse.Namespace(bag=bag, params=p, output=str(tmp_path / 'o'),
                                noise_model=None, quiet=True))
+
+
+def test_charuco_with_joint_states_is_refused_with_the_reason(bag, tmp_path):
+    p = params(tmp_path / 'p.yaml', robot_description='<robot name="x"/>')
+    with pytest.raises(CalibrateError, match='needs pose input'):
+        run(argparse.Namespace(bag=bag, params=p, output=str(tmp_path / 'o'),
+                               noise_model=None, quiet=True))
+    from armcal_ros.params import defaults
+    from armcal_ros.pipeline import make_detectors
+    values = dict(defaults(), marker_type='charuco')
+    with pytest.raises(ValueError, match='marker_type'):
+        make_detectors(values, ['cam'])
