@@ -3,9 +3,11 @@ The ``armcal`` node: background camera calibration on live topics (DESIGN.md sec
 
 Threads and why:
 
-- the executor (a MultiThreadedExecutor, one callback group per role) runs the subscription
-  callbacks, which only append the message to a bounded drop-oldest :class:`EventQueue`; the
-  services, which may wait for a solve; and the timers (diagnostics, solve scheduling);
+- the executor (a SingleThreadedExecutor in the main thread: rclpy's multi-threaded executor
+  costs about twice the CPU per message) runs the subscription callbacks, which only append the
+  message to a bounded drop-oldest :class:`EventQueue`, the timers (diagnostics, solve
+  scheduling) and the services, which never wait: ``~/calibrate`` and ``~/reset`` hand their
+  work to the front-end worker, in order with the inputs;
 - one front-end worker thread owns the :class:`~armcal_ros.pipeline.SampleCollector` (not
   thread-safe): it pairs, decodes and detects, in arrival order, and adds samples to the engine;
 - the engine's own solver thread runs the bundle adjustment; its result callback publishes
@@ -34,9 +36,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.exceptions import InvalidParameterTypeException, ParameterException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -81,7 +82,6 @@ QUEUE_BOUNDS = {'joint': 5000, 'image': 60, 'control': None}
 IDLE_FLUSH_S = 1.0
 SOLVE_CHECK_PERIOD_S = 0.5
 DIAGNOSTICS_PERIOD_S = 1.0
-SERVICE_SOLVE_TIMEOUT_S = 300.0
 
 
 class ParameterError(ValueError):
@@ -147,11 +147,6 @@ class CalibratorNode(Node):
         self._static_tf = None
         self._tf_warned = False
 
-        self._cb_inputs = MutuallyExclusiveCallbackGroup()
-        self._cb_services = MutuallyExclusiveCallbackGroup()
-        self._cb_timers = MutuallyExclusiveCallbackGroup()
-        self._cb_clients = MutuallyExclusiveCallbackGroup()
-
         latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                              reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -165,11 +160,9 @@ class CalibratorNode(Node):
         self._set_info_clients = {}
         self._make_set_info_clients(v['set_camera_info_services'])
 
-        self.create_service(Trigger, '~/calibrate', self._srv_calibrate,
-                            callback_group=self._cb_services)
-        self.create_service(Trigger, '~/reset', self._srv_reset,
-                            callback_group=self._cb_services)
-        self.create_service(Trigger, '~/save', self._srv_save, callback_group=self._cb_services)
+        self.create_service(Trigger, '~/calibrate', self._srv_calibrate)
+        self.create_service(Trigger, '~/reset', self._srv_reset)
+        self.create_service(Trigger, '~/save', self._srv_save)
 
         # Best effort so that reliable and best-effort publishers both match (PEERS.md item 4).
         def sensor_qos(depth):
@@ -177,21 +170,19 @@ class CalibratorNode(Node):
                               reliability=ReliabilityPolicy.BEST_EFFORT,
                               durability=DurabilityPolicy.VOLATILE)
         self.create_subscription(JointState, v['joint_states_topic'], self._on_joint_state,
-                                 sensor_qos(200), callback_group=self._cb_inputs)
+                                 sensor_qos(200))
         for cam, topic in zip(self.camera_names, v['image_topics']):
             mtype = CompressedImage if topic.rstrip('/').endswith('/compressed') else Image
-            self.create_subscription(mtype, topic, self._image_callback(cam), sensor_qos(10),
-                                     callback_group=self._cb_inputs)
+            self.create_subscription(mtype, topic, self._image_callback(cam),
+                                     sensor_qos(10))
             self.get_logger().info(f'{cam}: {mtype.__name__} on {topic}')
 
         if v['resume']:
             self._resume()
         self._worker = threading.Thread(target=self._work, name='armcal-frontend', daemon=True)
         self._worker.start()
-        self.create_timer(SOLVE_CHECK_PERIOD_S, self._maybe_solve,
-                          callback_group=self._cb_timers)
-        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics,
-                          callback_group=self._cb_timers)
+        self.create_timer(SOLVE_CHECK_PERIOD_S, self._maybe_solve)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
         self.add_on_set_parameters_callback(self._check_runtime_parameters)
         self.add_post_set_parameters_callback(self._apply_runtime_parameters)
         self.get_logger().info(
@@ -210,8 +201,11 @@ class CalibratorNode(Node):
                 else:
                     param = self.declare_parameter(p.name, p.default, descriptor(p))
                 value = param.value
+            except InvalidParameterTypeException as exc:
+                errors.append(f'parameter {p.name}: expected {p.type} ({exc})')
+                continue
             except ParameterException as exc:
-                errors.append(f'parameter {p.name}: {exc} (expected {p.type})')
+                errors.append(f'parameter {p.name}: {exc}')
                 continue
             if value is None:
                 # Initialise it (so that `ros2 param get` works); runtime checks are not
@@ -476,7 +470,7 @@ class CalibratorNode(Node):
         for client in self._set_info_clients.values():
             self.destroy_client(client)
         self._set_info_clients = {
-            cam: self.create_client(SetCameraInfo, srv, callback_group=self._cb_clients)
+            cam: self.create_client(SetCameraInfo, srv)
             for cam, srv in zip(self.camera_names, services)}
 
     def _commit_to_drivers(self, cal):
@@ -508,63 +502,45 @@ class CalibratorNode(Node):
                                         f'{res.status_message!r}')
         return done
 
-    # -- services ------------------------------------------------------------------------
-    def _run_in_worker(self, fn, timeout=10.0):
-        """Run ``fn`` on the front-end worker, in order with the inputs; return its result."""
-        done = threading.Event()
-        box = {}
-
-        def job():
-            try:
-                box['result'] = fn()
-            finally:
-                done.set()
-        self.queue.put('control', job)
-        if not done.wait(timeout):
-            raise TimeoutError(f'the front end did not answer within {timeout} s')
-        return box.get('result')
-
+    # -- services (never block the executor: the work goes to the worker or solver) --------
     def _srv_calibrate(self, request, response):
-        try:
-            self._run_in_worker(lambda: self._store(self.collector.flush()))
-        except TimeoutError as exc:
-            self.get_logger().warning(f'~/calibrate: {exc}; solving on what is stored')
-        with self._solve_lock:
-            if not self.engine.wait(SERVICE_SOLVE_TIMEOUT_S):
-                response.success = False
-                response.message = 'a background solve is still running; try again later'
-                return response
-            outcome = self.engine.solve(force=True)
-        response.success = bool(outcome.accepted)
-        if outcome.accepted:
-            cal = outcome.calibration
-            response.message = (
-                f'accepted: {cal.model} model, {outcome.n_samples} samples, cost '
-                f'{cal.cost:.4g}, {outcome.time_s:.2f} s; RMS '
-                + ', '.join(f'{n} {c.rms_px:.3f} px' for n, c in cal.cameras.items()))
-        else:
-            response.message = f'not accepted ({outcome.n_samples} samples): {outcome.reason}'
+        n = len(self.engine.store)
+        if self.engine.solving:
+            response.success = False
+            response.message = ('a solve is running already; its result will be published '
+                                'when it ends (call again to solve once more)')
+            return response
+        self.queue.put('control', self._flush_and_solve)
+        response.success = True
+        response.message = (f'solving on {n} samples and the open dwell; the result is '
+                            f'published on ~/<camera>/camera_info, ~/<camera>/pose and '
+                            f'/diagnostics')
         return response
+
+    def _flush_and_solve(self):
+        """Worker job: close the open dwell, then start a forced background solve."""
+        self._store(self.collector.flush())
+        with self._solve_lock:
+            if not self.engine.maybe_solve_async(force=True):
+                self.get_logger().warning('~/calibrate: a solve was running already')
 
     def _srv_reset(self, request, response):
-        def reset():
-            n = len(self.engine.store)
-            self.collector.reset()
-            self.engine.reset()
-            self._count_per_camera()
-            return n
-        try:
-            n = self._run_in_worker(reset)
-        except TimeoutError as exc:
-            response.success, response.message = False, str(exc)
-            return response
+        n = len(self.engine.store)
+        self.queue.put('control', self._reset)
+        response.success = True
+        response.message = (f'forgetting {n} samples; the current calibration stays published '
+                            f'until a new solve replaces it')
+        return response
+
+    def _reset(self):
+        """Worker job: forget the samples and the front end's state, in order with inputs."""
+        n = len(self.engine.store)
+        self.collector.reset()
+        self.engine.reset()
+        self._count_per_camera()
         self._save('after a reset')
         self._publish_markers(force=True)
-        response.success = True
-        response.message = (f'forgot {n} samples; the current calibration stays published '
-                            f'until a new solve replaces it')
-        self.get_logger().info(response.message)
-        return response
+        self.get_logger().info(f'reset: forgot {n} samples')
 
     def _srv_save(self, request, response):
         files = self._save('on request')
@@ -629,7 +605,7 @@ def main(args=None):
         print(f'[armcal] refusing to start: {exc}', file=sys.stderr, flush=True)
         rclpy.try_shutdown()
         return 2
-    executor = MultiThreadedExecutor(num_threads=4)
+    executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:
         executor.spin()

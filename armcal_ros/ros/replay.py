@@ -10,6 +10,7 @@ Publishers are reliable by default (they match reliable and best-effort subscrib
 """
 
 import importlib
+import signal
 import sys
 import threading
 import time
@@ -131,16 +132,22 @@ def add_arguments(p):
     p.add_argument('--quiet', action='store_true', help='no summary line')
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(f'signal {signum}')
+
+
 def run(args):
     """Run ``armcal replay``; return the exit status."""
     import rclpy
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
 
     if not args.rate > 0:
         raise ValueError(f'--rate must be > 0, got {args.rate}')
     if not args.delay >= 0:
         raise ValueError(f'--delay must be >= 0 s, got {args.delay}')
-    rclpy.init(args=None)
+    # Ctrl-C and SIGTERM stop the playback in order (publishers before the context).
+    rclpy.init(args=None, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGTERM, _interrupt)
     node = rclpy.create_node('armcal_replay')
     stop = threading.Event()
     result = {}
@@ -160,9 +167,8 @@ def run(args):
         worker.start()
         while worker.is_alive():
             worker.join(0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except KeyboardInterrupt:
         stop.set()
-        worker.join(5.0)
     finally:
         stop.set()
         worker.join(5.0)
