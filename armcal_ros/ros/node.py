@@ -230,6 +230,14 @@ class CalibratorNode(Node):
                 if os.path.exists(os.path.join(d, rel)):
                     values['robot_description_file'] = os.path.normpath(os.path.join(d, rel))
                     break
+        if values['pose_topic']:
+            errors.append('parameter pose_topic: pose input is offline-only for now (armcal '
+                          'calibrate); the node calibrates from joint states')
+        if values['marker_type'] == 'charuco':
+            errors.append('parameter marker_type: charuco boards are offline-only for now '
+                          '(armcal calibrate with pose input); the node takes sphere or aruco')
+        if errors:
+            raise ParameterError('; '.join(errors))
         try:
             check_all(values)
             prior_settings(values)
