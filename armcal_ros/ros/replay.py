@@ -45,14 +45,14 @@ def message_class(msgtype):
 
 def replay(node, bag, rate=1.0, loop=False, topics=None, reliable=True, depth=100,
            stop: Optional[threading.Event] = None,
-           on_publish: Optional[Callable[[str, int, float], None]] = None,
+           on_publish: Optional[Callable[[str, int, float, object], None]] = None,
            log: Optional[Callable[[str], None]] = None) -> ReplayStats:
     """
     Publish ``bag`` through ``node``'s publishers; return a :class:`ReplayStats`.
 
     ``rate`` scales time (2.0 plays twice as fast); ``loop`` repeats until ``stop`` is set;
-    ``topics`` restricts the topics (default all).  ``on_publish(topic, bag_t_ns, wall_time)``
-    is called after each publish (benchmarks use it to time the node's reaction).
+    ``topics`` restricts the topics (default all).  ``on_publish(topic, bag_t_ns, wall_time,
+    msg)`` is called after each publish (benchmarks use it to time the node's reaction).
     """
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from rclpy.serialization import deserialize_message
@@ -108,7 +108,7 @@ def replay(node, bag, rate=1.0, loop=False, topics=None, reliable=True, depth=10
             pubs[raw.topic].publish(msg)
             stats.published[raw.topic] += 1
             if on_publish is not None:
-                on_publish(raw.topic, raw.t_ns, time.time())
+                on_publish(raw.topic, raw.t_ns, time.time(), msg)
             stats.bag_s = max(stats.bag_s, (raw.t_ns - t0_bag) * 1e-9)
         stats.loops += 1
         if not loop:

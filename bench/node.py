@@ -1,0 +1,255 @@
+"""
+Live node benchmark: CPU, sample latency and the fastest replay that loses no dwell.
+
+The node runs as its own process with the bag's parameter file (bags/demo and config/demo.yaml
+by default: 7 min of teleoperation, JointState at 200 Hz, three 640x480 cameras at 15 Hz).  This
+script replays the bag in-process (armcal_ros.ros.replay, reliable publishers) and measures:
+
+- CPU of the node process from /proc/<pid>/stat (utime + stime), sampled every second: the
+  average over the replay and the peak one-second value, in % of one core (solves included);
+- latency from the last image of a dwell to the sample being stored: for each message on
+  ~/samples (published when the store takes a sample), the wall time it arrived here minus the
+  wall time the replay published the dwell's last image (the last image, any camera, whose stamp
+  lies in the ground-truth dwell interval that contains the sample's stamp);
+- lost dwells: the samples the node's front end produced (diagnostics input_sample_*) against
+  those of the offline front end on the same bag (the same SampleCollector fed in bag order);
+  the highest rate among --rates with none lost.
+
+Usage: python bench/node.py [--bag bags/demo] [--params config/demo.yaml] [--rates 1 2 4 8]
+Writes docs/BENCHMARKS.md (section "node") and docs/bench/node.json.  The first rate is the one
+CPU and latency are reported for (1x by default).
+"""
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _report import machine, table, write_json, write_section  # noqa: E402
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+from armcal_ros.io.bag import iter_raw  # noqa: E402
+from armcal_ros.offline import build_collector, stamp_ns  # noqa: E402
+from armcal_ros.params import load_params_file  # noqa: E402
+
+
+def offline_samples(bag, values):
+    """Return the samples the offline front end makes from ``bag`` (reference for losses)."""
+    _, collector = build_collector(values)
+    jt = values['joint_states_topic']
+    cam_of = dict(zip(values['image_topics'], values['camera_names']))
+    out = []
+    for raw in iter_raw(bag, [jt] + list(cam_of)):
+        msg = raw.deserialize()
+        if raw.topic == jt:
+            out += collector.add_joint_state(stamp_ns(msg.header.stamp), msg.name,
+                                             msg.position)
+        else:
+            out += collector.add_image(cam_of[raw.topic], stamp_ns(msg.header.stamp), msg)
+    return out + collector.flush()
+
+
+class CpuSampler(threading.Thread):
+    """Sample a process's CPU time from /proc/<pid>/stat once a second."""
+
+    def __init__(self, pid):
+        super().__init__(daemon=True)
+        self.pid, self.tick = pid, os.sysconf('SC_CLK_TCK')
+        self.samples = []            # (wall time, cpu seconds)
+        self.stop = threading.Event()
+
+    def cpu(self):
+        with open(f'/proc/{self.pid}/stat') as f:
+            fields = f.read().rsplit(')', 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / self.tick   # utime, stime
+
+    def run(self):
+        while not self.stop.is_set():
+            try:
+                self.samples.append((time.monotonic(), self.cpu()))
+            except OSError:
+                return
+            self.stop.wait(1.0)
+
+    def between(self, t0, t1):
+        """Return (average %, peak 1-s %) of one core between t0 and t1."""
+        s = np.array([x for x in self.samples if t0 <= x[0] <= t1])
+        if len(s) < 2:
+            return float('nan'), float('nan')
+        rates = np.diff(s[:, 1]) / np.diff(s[:, 0]) * 100.0
+        return float((s[-1, 1] - s[0, 1]) / (s[-1, 0] - s[0, 0]) * 100.0), float(rates.max())
+
+
+def run_rate(bag, params, rate, gt, out_dir, env):
+    """Start a node, replay at ``rate``, return the measurements."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PointStamped
+    from rclpy.executors import SingleThreadedExecutor
+
+    from armcal_ros.ros.conversions import diagnostic_values
+    from armcal_ros.ros.replay import replay
+
+    node_proc = subprocess.Popen(
+        [sys.executable, '-m', 'armcal_ros.ros.node', '--ros-args', '--params-file', params,
+         '-p', f'output_dir:={out_dir}', '-p', 'resume:=false'], env=env, cwd=ROOT,
+        stdout=open(os.path.join(out_dir, f'node_{rate:g}.log'), 'w'), stderr=subprocess.STDOUT)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = rclpy.create_node('armcal_bench', context=ctx)
+    samples, diag = [], {}
+    node.create_subscription(PointStamped, '/armcal/samples',
+                             lambda m: samples.append((time.time(), stamp_ns(m.header.stamp))),
+                             100)
+
+    def on_diag(msg):
+        v = diagnostic_values(msg, 'armcal: calibration')
+        if v is not None:
+            diag.clear()
+            diag.update(v)
+    node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+    published = {}               # image header stamp -> publish wall time
+
+    def on_publish(topic, t_ns, wall, msg):
+        if topic != '/joint_states':
+            published[stamp_ns(msg.header.stamp)] = max(published.get(
+                stamp_ns(msg.header.stamp), 0.0), wall)
+    cpu = CpuSampler(node_proc.pid)
+    try:
+        deadline = time.monotonic() + 60
+        while not diag and time.monotonic() < deadline:
+            time.sleep(0.2)
+        if not diag:
+            raise RuntimeError('the node did not come up (no diagnostics in 60 s)')
+        cpu.start()
+        time.sleep(1.5)
+        t0 = time.monotonic()
+        stats = replay(node, bag, rate=rate, on_publish=on_publish)
+        t1 = time.monotonic()
+        time.sleep(3.0)          # the idle flush closes the last dwell
+        cpu_avg, cpu_peak = cpu.between(t0, t1)
+        final = dict(diag)
+    finally:
+        cpu.stop.set()
+        node_proc.send_signal(signal.SIGINT)
+        try:
+            node_proc.wait(30)
+        except subprocess.TimeoutExpired:
+            node_proc.kill()
+        executor.shutdown()
+        spin.join(10)
+        node.destroy_node()
+        ctx.try_shutdown()
+    produced = sum(int(final.get(f'input_sample_{k}', 0))
+                   for k in ('added', 'merged', 'replaced', 'dropped'))
+    # latency: sample -> its dwell -> the dwell's last published image
+    starts, ends = gt['dwell_start_ns'], gt['dwell_end_ns']
+    img_stamps = np.array(sorted(published))
+    lat = []
+    for wall, st in samples:
+        k = np.nonzero((starts <= st) & (st <= ends))[0]
+        if not len(k):
+            continue
+        inside = img_stamps[(img_stamps >= starts[k[0]]) & (img_stamps <= ends[k[0]])]
+        if len(inside):
+            lat.append(wall - published[int(inside[-1])])
+    dropped = {k[len('queue_dropped_'):]: int(v) for k, v in final.items()
+               if k.startswith('queue_dropped_')}
+    return dict(rate=rate, wall_s=stats.wall_s, bag_s=stats.bag_s, max_lag_s=stats.max_lag_s,
+                cpu_avg=cpu_avg, cpu_peak=cpu_peak, samples_produced=produced,
+                samples_stored=int(final.get('samples', 0)),
+                frames=int(final.get('input_frames', 0)),
+                joint_states=int(final.get('input_joint_states', 0)),
+                published=stats.published, queue_dropped=dropped,
+                solves=int(final.get('solves', 0)),
+                latency_s=[float(x) for x in lat])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--bag', default=os.path.join(ROOT, 'bags', 'demo'))
+    ap.add_argument('--params', default=os.path.join(ROOT, 'config', 'demo.yaml'))
+    ap.add_argument('--rates', type=float, nargs='+', default=[1.0, 2.0, 4.0, 8.0])
+    ap.add_argument('--no-write', action='store_true', help='print only')
+    args = ap.parse_args()
+    env = dict(os.environ, ROS_DOMAIN_ID=str(1 + os.getpid() % 200),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
+    tmp = tempfile.mkdtemp(prefix='armcal_bench_node_')
+    env.setdefault('ROS_LOG_DIR', os.path.join(tmp, 'log'))
+    os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE',
+                                           'ROS_LOG_DIR')})
+    values = load_params_file(args.params)
+    gt = np.load(os.path.join(args.bag, 'ground_truth', 'markers.npz'))
+    t = time.perf_counter()
+    reference = len(offline_samples(args.bag, values))
+    print(f'offline front end: {reference} samples ({time.perf_counter() - t:.0f} s)',
+          flush=True)
+    runs = []
+    for rate in args.rates:
+        out = os.path.join(tmp, f'rate_{rate:g}')
+        os.makedirs(out)
+        r = run_rate(args.bag, args.params, rate, gt, out, env)
+        r['lost'] = reference - r['samples_produced']
+        lat = np.array(r['latency_s'])
+        print(f'rate {rate:g}x: cpu avg {r["cpu_avg"]:.0f} % peak {r["cpu_peak"]:.0f} %, '
+              f'samples {r["samples_produced"]}/{reference}, latency median '
+              f'{np.median(lat) if len(lat) else float("nan"):.3f} s, '
+              f'dropped {r["queue_dropped"]}, replay lag {r["max_lag_s"]:.2f} s', flush=True)
+        runs.append(r)
+    ok = [r['rate'] for r in runs if r['lost'] <= 0]
+    best = max(ok) if ok else None
+    first = runs[0]
+    lat = np.array(first['latency_s'])
+    rows = []
+    for r in runs:
+        la = np.array(r['latency_s'])
+        js_sent = r['published'].get(values['joint_states_topic'], 0)
+        img_sent = sum(v for k, v in r['published'].items() if k in values['image_topics'])
+        rows.append([f'{r["rate"]:g}x', f'{r["wall_s"]:.0f}', f'{r["cpu_avg"]:.0f}',
+                     f'{r["cpu_peak"]:.0f}', f'{r["joint_states"]}/{js_sent}',
+                     f'{r["frames"]}/{img_sent}', f'{r["samples_produced"]}/{reference}',
+                     sum(r['queue_dropped'].values()),
+                     f'{np.median(la):.3f}' if len(la) else '-',
+                     f'{np.percentile(la, 95):.3f}' if len(la) else '-', r['solves']])
+    text = '\n'.join([
+        '## Live node (bench/node.py)',
+        '',
+        f'The node replaying `{os.path.relpath(args.bag, ROOT)}` with '
+        f'`{os.path.relpath(args.params, ROOT)}` through `armcal_ros.ros.replay` (reliable '
+        f'publishers, real DDS on this machine); the node\'s CPU from /proc (solves included, '
+        f'% of one core, peak over one second). Samples: produced by the node\'s front end / '
+        f'by the offline front end on the same bag (fewer = dwells lost). Latency: last image '
+        f'of a dwell published -> its sample received on `~/samples`, seconds. Machine: '
+        f'{machine()}; other jobs shared the two cores, so CPU and losses are upper bounds.',
+        '',
+        table(['rate', 'wall s', 'CPU avg %', 'CPU peak %', 'joint states recv/sent',
+               'images recv/sent', 'samples', 'queue drops', 'latency median s',
+               'latency p95 s', 'solves'], rows),
+        '',
+        f'At {first["rate"]:g}x: average CPU {first["cpu_avg"]:.0f} % of one core (target under '
+        f'50 %), peak {first["cpu_peak"]:.0f} %; latency median '
+        f'{np.median(lat) if len(lat) else float("nan"):.3f} s. Highest rate with no dwell '
+        f'lost: ' + (f'{best:g}x.' if best is not None else 'none of the rates tried.'),
+    ])
+    print(text)
+    if not args.no_write:
+        write_section('node', text)
+        write_json('node', dict(reference_samples=reference, runs=runs, best_rate=best,
+                                machine=machine()))
+
+
+if __name__ == '__main__':
+    main()
