@@ -29,7 +29,8 @@ import numpy as np
 from armcal_ros.core.adjustment import Observations, SolverSettings
 from armcal_ros.core.calibration import calibrate, CalibrationResult, CameraSpec
 from armcal_ros.core.camera import Camera, skew
-from armcal_ros.core.priors import PriorSettings
+from armcal_ros.core.kinematic_prior import KinematicData
+from armcal_ros.core.priors import KINEMATIC_MODELS, PriorSettings
 from armcal_ros.frontend.store import SampleStore
 from armcal_ros.io.calib_files import atomic_write_text, read_cameras, write_cameras
 
@@ -166,8 +167,16 @@ class CalibrationEngine:
     """
 
     def __init__(self, settings: EngineSettings, store: Optional[SampleStore] = None,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = time.monotonic,
+                 kinematics_fn: Optional[Callable[[np.ndarray], KinematicData]] = None):
         self.settings = settings.validate()
+        # kinematics_fn(Q (N, n)) -> KinematicData: the marker's Jacobian with respect to the
+        # robot's kinematic error parameters at each sample's joint angles (kinematic, hybrid
+        # and auto need it; the engine itself knows nothing of robots).
+        self.kinematics_fn = kinematics_fn
+        self._auto_choice: Optional[PriorSettings] = None
+        self._auto_samples = 0
+        self.auto_reason = ''
         self.store = store if store is not None else SampleStore()
         self.clock = clock
         self.image_sizes: Dict[str, tuple] = {}
@@ -238,6 +247,31 @@ class CalibrationEngine:
                                f'(min_new_samples {self.settings.min_new_samples})')
             return True, 'due'
 
+    def _kinematics(self, arrays):
+        """KinematicData for the samples of ``arrays`` (None without joint angles)."""
+        if self.kinematics_fn is None or len(arrays.points) == 0:
+            return None
+        by_id = {s.id: s for s in self.store.samples}
+        qs = [by_id[i].q for i in arrays.sample_ids]
+        if any(q is None for q in qs):
+            return None
+        return self.kinematics_fn(np.asarray(qs, float))
+
+    def _prior_for_solve(self, n_samples):
+        """
+        The prior to solve with, and whether it is a model search.
+
+        With ``auto`` the search (:func:`~armcal_ros.core.model_selection.select_model`, a few
+        seconds) runs on the first solve and again whenever the samples have grown by half
+        since the last search; in between, background re-solves reuse its choice.
+        """
+        prior = self.settings.prior
+        if prior.model != 'auto':
+            return prior, False
+        if self._auto_choice is None or n_samples >= 1.5 * self._auto_samples:
+            return prior, True
+        return self._auto_choice, False
+
     def _problem(self):
         names = list(self.settings.camera_names)
         arrays = self.store.arrays(camera_names=names)
@@ -260,7 +294,14 @@ class CalibrationEngine:
             self._samples_at_last_solve = len(self.store)
             initial = ({k: c.camera for k, c in self._current.cameras.items()}
                        if self._current is not None else None)
+            prior, searching = self._prior_for_solve(n)
+            kin = self._kinematics(arrays)
         keep = [j for j, s in enumerate(specs) if s.name not in missing]
+        if prior.model in KINEMATIC_MODELS and kin is None:
+            return self._finish(SolveOutcome(
+                False, f'noise_model {prior.model} needs joint angles for every sample (this '
+                'engine has no robot model or some samples came without joints)', None, None,
+                n, time.perf_counter() - t0))
         if not keep or n == 0:
             reason = ('no samples' if n == 0 else
                       f'image size unknown for {missing}: no image received yet')
@@ -271,23 +312,34 @@ class CalibrationEngine:
         sel = remap[arrays.camera_index] >= 0
         obs = Observations(remap[arrays.camera_index[sel]], arrays.point_index[sel],
                            arrays.uv[sel])
-        result = calibrate([specs[j] for j in keep], arrays.points, obs, self.settings.prior,
-                           self.settings.solver, initial=initial)
+        kw = dict(kinematics=kin if prior.model in KINEMATIC_MODELS + ('auto',) else None)
+        specs_kept = [specs[j] for j in keep]
+        result = calibrate(specs_kept, arrays.points, obs, prior, self.settings.solver,
+                           initial=initial, **kw)
         if (result.adjustment is None or not np.all(np.isfinite(result.adjustment.covariance))) \
                 and initial is not None:
             # A warm start that failed may have been poisoned: try once from scratch.
-            result = calibrate([specs[j] for j in keep], arrays.points, obs,
-                               self.settings.prior, self.settings.solver)
+            result = calibrate(specs_kept, arrays.points, obs, prior, self.settings.solver, **kw)
+        if searching and result.selection is not None:
+            with self._lock:
+                self._auto_choice = result.selection.settings
+                self._auto_samples = n
+                self.auto_reason = result.selection.reason
         outcome = self._judge(result, n, time.perf_counter() - t0)
         return self._finish(outcome)
 
     def _judge(self, result, n, elapsed):
         if result.adjustment is None or not result.success:
             return SolveOutcome(False, f'solve failed: {result.message}', result, None, n, elapsed)
-        hyper = dict(point_sigma=self.settings.prior.point_sigma,
-                     bias_sigma=self.settings.prior.bias_sigma,
-                     coherence_length=self.settings.prior.coherence_length,
+        used = (result.selection.settings if result.selection is not None
+                else self._auto_choice if self.settings.prior.model == 'auto'
+                else self.settings.prior)
+        hyper = dict(model=used.model, point_sigma=used.point_sigma, bias_sigma=used.bias_sigma,
+                     coherence_length=used.coherence_length,
+                     kinematic_scale=getattr(used, 'kinematic_scale', 1.0),
                      pixel_sigma=self.settings.solver.pixel_sigma)
+        if self.settings.prior.model == 'auto':
+            hyper['auto_reason'] = self.auto_reason
         new = calibration_from_result(result, n, hyper)
         with self._lock:
             old = self._current

@@ -15,6 +15,9 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional
 
+import numpy as np
+
+from armcal_ros.core.kinematic_prior import KinematicData
 from armcal_ros.engine import CalibrationEngine, EngineSettings, SolveOutcome
 from armcal_ros.frontend.store import SampleStore
 from armcal_ros.io.bag import bag_topics, DeserializationError, iter_raw
@@ -70,7 +73,11 @@ def build_engine(values, chain):
                               solve_period_s=values['solve_period'],
                               min_new_samples=values['min_new_samples'],
                               base_frame=values['base_frame'])
-    return CalibrationEngine(settings, store)
+    offset = np.asarray(values['marker_offset'], float)
+
+    def kinematics(Q):
+        return KinematicData(chain.jacobian_errors(Q, offset), chain.error_names)
+    return CalibrationEngine(settings, store, kinematics_fn=kinematics)
 
 
 @dataclass
@@ -203,6 +210,7 @@ def make_report(values, engine, outcome, front, timings):
                              free_distortion=list(values['free_distortion']),
                              robust_loss=values['robust_loss'],
                              robust_loss_scale=values['robust_loss_scale']),
+        chosen=(dict(cal.hyperparameters) if cal is not None else {}),
         accepted=bool(outcome.accepted), message=outcome.reason,
         n_samples=len(engine.store), samples=front.added, cameras=cams,
         front_end=dict(front.counts), warnings=front.warnings, timings=timings,
@@ -211,10 +219,13 @@ def make_report(values, engine, outcome, front, timings):
 
 def format_table(report):
     """Return the short table printed by the CLI."""
+    chosen = report.get('chosen', {})
     lines = [f'noise model {report["noise_model"]}: {report["n_samples"]} samples; '
-             f'{report["message"]}',
-             f'{"camera":<10} {"fx":>9} {"fy":>9} {"cx":>8} {"cy":>8} {"k1":>8} '
-             f'{"obs":>5} {"inl":>5} {"rms px":>7}']
+             f'{report["message"]}']
+    if report['noise_model'] == 'auto' and chosen:
+        lines.append(f'auto chose {chosen.get("model")}: {chosen.get("auto_reason", "")}')
+    lines.append(f'{"camera":<10} {"fx":>9} {"fy":>9} {"cx":>8} {"cy":>8} {"k1":>8} '
+                 f'{"obs":>5} {"inl":>5} {"rms px":>7}')
     for name, c in report['cameras'].items():
         if 'fx' not in c:
             lines.append(f'{name:<10} {c["status"]}: {c["message"]}')

@@ -110,7 +110,7 @@ PARAMS = [
     Param('image_topics', 'string[]', ['/cam1/image_raw', '/cam2/image_raw', '/cam3/image_raw'],
           'one image topic per camera, same order; topics ending in /compressed carry '
           'CompressedImage', _topics),
-    Param('noise_model', 'string', 'correlated',
+    Param('noise_model', 'string', 'auto',
           'prior on the robot\'s points: ' + ', '.join(NOISE_MODELS), _one_of(NOISE_MODELS)),
     Param('pixel_sigma', 'double', 0.5, 'image noise, pixels', _positive, minimum=0.0),
     Param('point_sigma', 'double', 0.0002, 'independent point noise s_n, metres', _positive,

@@ -136,3 +136,16 @@ def test_settings_are_validated():
     eng = CalibrationEngine(EngineSettings(['a']))
     with pytest.raises(ValueError, match="camera 'b'"):
         eng.set_image_size('b', 640, 480)
+
+
+def test_kinematic_model_without_joint_angles_is_refused_with_the_reason():
+    prob = make_problem(40, 2)
+    s = EngineSettings([c.name for c in prob.cameras], PriorSettings('kinematic'),
+                       SolverSettings(pixel_sigma=0.3), min_samples=10)
+    eng = CalibrationEngine(s)
+    for c in prob.cameras:
+        eng.set_image_size(c.name, c.width, c.height)
+    for smp in _samples(prob):
+        eng.add_sample(smp)
+    out = eng.solve()
+    assert not out.accepted and 'needs joint angles' in out.reason

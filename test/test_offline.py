@@ -62,7 +62,8 @@ def _check_against_truth(out_dir, gt_dir, names=('cam1', 'cam2', 'cam3')):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize('model', ['fixed', 'independent', 'correlated'])
+@pytest.mark.parametrize('model', ['fixed', 'independent', 'correlated', 'kinematic', 'hybrid',
+                                   'auto'])
 def test_cli_calibrates_each_noise_model_close_to_truth(sim_bag, tmp_path, model):
     bag, params = sim_bag
     out = tmp_path / 'out'

@@ -11,7 +11,7 @@ def test_defaults_pass_their_own_checks():
         assert check_value(name, v) == v
     values['robot_description'] = '<robot name="x"/>'
     check_all(values)
-    assert prior_settings(values).model == 'correlated'
+    assert prior_settings(values).model == 'auto'
     assert solver_settings(values).pixel_sigma == 0.5
 
 
