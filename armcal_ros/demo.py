@@ -99,7 +99,8 @@ def add_arguments(ap):
     ap.add_argument('--bag', default=os.path.join(ROOT, 'bags', 'demo'))
     ap.add_argument('--params', default=os.path.join(ROOT, 'config', 'demo.yaml'))
     ap.add_argument('--output', default=os.path.join(ROOT, 'out', 'demo'))
-    ap.add_argument('--noise-model', nargs='+', default=['fixed', 'correlated', 'kinematic', 'auto'],
+    ap.add_argument('--noise-model', nargs='+',
+                    default=['fixed', 'correlated', 'kinematic', 'auto'],
                     help='noise models to compare (the front end runs once)')
     ap.add_argument('--synthetic', action='store_true',
                     help='point-level demo without a bag (every noise model)')

@@ -248,7 +248,7 @@ class CalibrationEngine:
             return True, 'due'
 
     def _kinematics(self, arrays):
-        """KinematicData for the samples of ``arrays`` (None without joint angles)."""
+        """Return the KinematicData of the samples in ``arrays`` (None without joint angles)."""
         if self.kinematics_fn is None or len(arrays.points) == 0:
             return None
         by_id = {s.id: s for s in self.store.samples}
@@ -259,7 +259,7 @@ class CalibrationEngine:
 
     def _prior_for_solve(self, n_samples):
         """
-        The prior to solve with, and whether it is a model search.
+        Return the prior to solve with, and whether it is a model search.
 
         With ``auto`` the search (:func:`~armcal_ros.core.model_selection.select_model`, a few
         seconds) runs on the first solve and again whenever the samples have grown by half
