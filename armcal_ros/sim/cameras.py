@@ -6,7 +6,8 @@ from armcal_ros.core.camera import Camera
 
 
 def ring_of_cameras(n, target, rng, distance=(1.5, 2.0), height=(0.4, 1.0), width=640,
-                    height_px=480, focal=800.0, dist=(-0.15, 0.05, 0.0, 0.0, 0.0), names=None, jitter=0.05):
+                    height_px=480, focal=800.0, dist=(-0.15, 0.05, 0.0, 0.0, 0.0), names=None,
+                    jitter=0.05):
     """
     Place ``n`` cameras around ``target`` at ``distance`` metres, spread in azimuth.
 
