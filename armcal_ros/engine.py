@@ -21,7 +21,7 @@ import json
 import os
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Dict, List, Optional
 
 import numpy as np
@@ -176,6 +176,7 @@ class CalibrationEngine:
         self.kinematics_fn = kinematics_fn
         self._auto_choice: Optional[PriorSettings] = None
         self._auto_samples = 0
+        self._auto_pixel_sigma: Optional[float] = None   # the image noise auto estimated
         self.auto_reason = ''
         self.store = store if store is not None else SampleStore()
         self.clock = clock
@@ -314,16 +315,21 @@ class CalibrationEngine:
                            arrays.uv[sel])
         kw = dict(kinematics=kin if prior.model in KINEMATIC_MODELS + ('auto',) else None)
         specs_kept = [specs[j] for j in keep]
-        result = calibrate(specs_kept, arrays.points, obs, prior, self.settings.solver,
+        # Between searches, solve the chosen model with the image noise the search estimated.
+        solver = self.settings.solver
+        if not searching and self.settings.prior.model == 'auto' and self._auto_pixel_sigma:
+            solver = replace(solver, pixel_sigma=self._auto_pixel_sigma)
+        result = calibrate(specs_kept, arrays.points, obs, prior, solver,
                            initial=initial, **kw)
         if (result.adjustment is None or not np.all(np.isfinite(result.adjustment.covariance))) \
                 and initial is not None:
             # A warm start that failed may have been poisoned: try once from scratch.
-            result = calibrate(specs_kept, arrays.points, obs, prior, self.settings.solver, **kw)
+            result = calibrate(specs_kept, arrays.points, obs, prior, solver, **kw)
         if searching and result.selection is not None:
             with self._lock:
                 self._auto_choice = result.selection.settings
                 self._auto_samples = n
+                self._auto_pixel_sigma = result.selection.pixel_sigma
                 self.auto_reason = result.selection.reason
         outcome = self._judge(result, n, time.perf_counter() - t0)
         return self._finish(outcome)
@@ -337,7 +343,8 @@ class CalibrationEngine:
         hyper = dict(model=used.model, point_sigma=used.point_sigma, bias_sigma=used.bias_sigma,
                      coherence_length=used.coherence_length,
                      kinematic_scale=getattr(used, 'kinematic_scale', 1.0),
-                     pixel_sigma=self.settings.solver.pixel_sigma)
+                     pixel_sigma=(self._auto_pixel_sigma or self.settings.solver.pixel_sigma)
+                     if self.settings.prior.model == 'auto' else self.settings.solver.pixel_sigma)
         if self.settings.prior.model == 'auto':
             hyper['auto_reason'] = self.auto_reason
         new = calibration_from_result(result, n, hyper)

@@ -4,7 +4,7 @@ import pytest
 
 from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.calibration import calibrate
-from armcal_ros.core.model_selection import select_model
+from armcal_ros.core.model_selection import estimate_pixel_sigma, select_model
 from armcal_ros.core.priors import PriorSettings
 from armcal_ros.sim.robot_points import make_robot_problem
 from armcal_ros.sim.synthetic import make_problem
@@ -56,3 +56,31 @@ def test_auto_without_joint_angles_considers_only_point_models():
     models = {c.settings.model for c in sel.candidates}
     assert models == {'fixed', 'independent', 'correlated'}
     assert sel.settings.model == 'correlated'
+
+
+@pytest.mark.parametrize('true_sigma', [0.05, 0.3, 1.0])
+def test_free_network_estimate_recovers_the_image_noise_under_a_bias(true_sigma):
+    # 1 mm of correlated bias is ~0.5 px here: far above the smaller noise levels, so the
+    # estimate must come from the images, not from the fit of the robot's points.
+    prob = make_problem(300, 3, bias_sigma=1e-3, coherence_length=0.3, pixel_sigma=true_sigma)
+    s = SolverSettings(pixel_sigma=0.5)
+    cams, inl = _fixed(prob, s)
+    est = estimate_pixel_sigma(cams, prob.measured, prob.obs, s, inliers=inl)
+    assert est.success
+    assert est.pixel_sigma == pytest.approx(true_sigma, rel=0.15)
+    assert 0 < est.redundancy < 2 * est.n_observations
+
+
+def test_auto_uses_the_estimated_image_noise_not_the_configured_one():
+    prob = make_problem(150, 5, bias_sigma=1e-3, coherence_length=0.3, pixel_sigma=0.1)
+    s = SolverSettings(pixel_sigma=2.0)
+    cams, inl = _fixed(prob, s)
+    sel = select_model(cams, prob.measured, prob.obs, PriorSettings(), s, inliers=inl,
+                       holdout=False, grid={'coherence_length': (0.3,), 'bias_sigma': (1e-3,)})
+    assert sel.pixel_sigma == pytest.approx(0.1, rel=0.2)
+    assert 'image noise' in sel.reason and 'free-network' in sel.reason
+    assert sel.settings.model == 'correlated', sel.reason
+    kept = select_model(cams, prob.measured, prob.obs, PriorSettings(), s, inliers=inl,
+                        holdout=False, estimate_noise=False,
+                        grid={'coherence_length': (0.3,), 'bias_sigma': (1e-3,)})
+    assert kept.pixel_sigma == 2.0 and kept.noise is None
