@@ -449,6 +449,10 @@ class CalibrationEngine:
                 for name, c in cal.cameras.items():
                     if name in self.settings.camera_names:
                         self.image_sizes.setdefault(name, (c.camera.width, c.camera.height))
+                if cal.n_samples == len(self.store):
+                    # Solved on exactly these samples: a restart need not solve them again.
+                    self._revision_at_last_solve = self.store.revision
+                    self._samples_at_last_solve = len(self.store)
             said.append(f'calibration of {sorted(cal.cameras)} ({cal.model}, '
                         f'{cal.n_samples} samples)')
         return 'restored ' + ' and '.join(said) if said else 'nothing to restore'

@@ -149,3 +149,25 @@ def test_kinematic_model_without_joint_angles_is_refused_with_the_reason():
         eng.add_sample(smp)
     out = eng.solve()
     assert not out.accepted and 'needs joint angles' in out.reason
+
+
+def test_resume_does_not_solve_the_same_samples_again(tmp_path):
+    prob = make_problem(60, 6)
+    samples = _samples(prob)
+    eng = _engine(prob, Clock(), min_samples=10, solve_period_s=0.0, min_new_samples=1)
+    for s in samples[:40]:
+        eng.add_sample(s)
+    assert eng.solve().accepted
+    eng.save(tmp_path)
+    fresh = _engine(prob, Clock(), min_samples=10, solve_period_s=0.0, min_new_samples=1)
+    fresh.load(tmp_path)
+    due, why = fresh.solve_due()
+    assert not due and why == 'no new samples'
+    fresh.add_sample(samples[40])
+    assert fresh.solve_due()[0]
+    # samples saved after the last solve: the restored calibration is older, so solve again
+    eng.add_sample(samples[41])
+    eng.save(tmp_path)
+    again = _engine(prob, Clock(), min_samples=10, solve_period_s=0.0, min_new_samples=1)
+    again.load(tmp_path)
+    assert again.solve_due()[0]
