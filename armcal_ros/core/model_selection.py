@@ -217,8 +217,6 @@ def select_model(cameras, measured, obs: Observations, base: PriorSettings = Non
         field_part = (ps.bias_sigma, ps.coherence_length) if ps.model in (
             'correlated', 'hybrid') else None
         kin = ps.kinematic_scale if ps.model in KINEMATIC_MODELS else None
-        if ps.model == 'hybrid' and ps.kinematic_scale == 0:
-            return ('correlated', field_part, None)    # the same model: adjust it once
         return (ps.model, field_part, kin)
 
     def run(**kw):
@@ -226,6 +224,15 @@ def select_model(cameras, measured, obs: Observations, base: PriorSettings = Non
         key = key_of(ps)
         if key in seen:
             return seen[key]
+        twin = seen.get(key_of(replace(ps, model='correlated')))
+        if ps.model == 'hybrid' and ps.kinematic_scale == 0 and twin is not None and \
+                'correlated' in allowed:
+            # Hybrid with the kinematic part off is that correlated model: reuse its solve.
+            c = Candidate(ps, twin.log_evidence, 0.0, twin.success, result=twin.result,
+                          cameras=twin.cameras)
+            cands.append(c)
+            seen[key] = c
+            return c
         t = time.perf_counter()
         g0 = None
         if ps.model == 'kinematic' and last_kin and ps.kinematic_scale > 0:
