@@ -11,9 +11,13 @@ script replays the bag in-process (armcal_ros.ros.replay, reliable publishers) a
   ~/samples (published when the store takes a sample), the wall time it arrived here minus the
   wall time the replay published the dwell's last image (the last image, any camera, whose stamp
   lies in the ground-truth dwell interval that contains the sample's stamp);
-- lost dwells: the samples the node's front end produced (diagnostics input_sample_*) against
-  those of the offline front end on the same bag (the same SampleCollector fed in bag order);
-  the highest rate among --rates with none lost.
+- lost dwells: the ground-truth dwells that got a stored sample offline (the same
+  SampleCollector and SampleStore fed in bag order) but none in the node (its ~/samples); the
+  highest rate among --rates with none lost.  (Counting samples instead would hide losses: a
+  dwell split by a lost joint state gives two samples that the store merges.)
+
+The first rate is also run with solves disabled (min_samples 100000), to separate the front
+end's CPU from the solver's.
 
 Usage: python bench/node.py [--bag bags/demo] [--params config/demo.yaml] [--rates 1 2 4 8]
 Writes docs/BENCHMARKS.md (section "node") and docs/bench/node.json.  The first rate is the one
@@ -38,13 +42,14 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from armcal_ros.io.bag import iter_raw  # noqa: E402
-from armcal_ros.offline import build_collector, stamp_ns  # noqa: E402
+from armcal_ros.offline import build_collector, build_engine, stamp_ns  # noqa: E402
 from armcal_ros.params import load_params_file  # noqa: E402
 
 
 def offline_samples(bag, values):
-    """Return the samples the offline front end makes from ``bag`` (reference for losses)."""
-    _, collector = build_collector(values)
+    """Return the stamps of the samples the offline front end stores from ``bag``."""
+    chain, collector = build_collector(values)
+    engine = build_engine(values, chain)
     jt = values['joint_states_topic']
     cam_of = dict(zip(values['image_topics'], values['camera_names']))
     out = []
@@ -55,7 +60,19 @@ def offline_samples(bag, values):
                                              msg.position)
         else:
             out += collector.add_image(cam_of[raw.topic], stamp_ns(msg.header.stamp), msg)
-    return out + collector.flush()
+    return [s.stamp_ns for s in out + collector.flush()
+            if engine.add_sample(s).value != 'dropped']
+
+
+def dwells_covered(stamps, gt):
+    """Return the set of ground-truth dwell indices whose interval holds one of ``stamps``."""
+    starts, ends = gt['dwell_start_ns'], gt['dwell_end_ns']
+    out = set()
+    for st in stamps:
+        k = np.nonzero((starts <= st) & (st <= ends))[0]
+        if len(k):
+            out.add(int(k[0]))
+    return out
 
 
 class CpuSampler(threading.Thread):
@@ -89,8 +106,8 @@ class CpuSampler(threading.Thread):
         return float((s[-1, 1] - s[0, 1]) / (s[-1, 0] - s[0, 0]) * 100.0), float(rates.max())
 
 
-def run_rate(bag, params, rate, gt, out_dir, env):
-    """Start a node, replay at ``rate``, return the measurements."""
+def run_rate(bag, params, rate, gt, out_dir, env, extra=()):
+    """Start a node (``extra``: -p overrides), replay at ``rate``, return the measurements."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PointStamped
@@ -101,7 +118,8 @@ def run_rate(bag, params, rate, gt, out_dir, env):
 
     node_proc = subprocess.Popen(
         [sys.executable, '-m', 'armcal_ros.ros.node', '--ros-args', '--params-file', params,
-         '-p', f'output_dir:={out_dir}', '-p', 'resume:=false'], env=env, cwd=ROOT,
+         '-p', f'output_dir:={out_dir}', '-p', 'resume:=false']
+        + [a for x in extra for a in ('-p', x)], env=env, cwd=ROOT,
         stdout=open(os.path.join(out_dir, f'node_{rate:g}.log'), 'w'), stderr=subprocess.STDOUT)
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
@@ -174,7 +192,8 @@ def run_rate(bag, params, rate, gt, out_dir, env):
                 frames=int(final.get('input_frames', 0)),
                 joint_states=int(final.get('input_joint_states', 0)),
                 published=stats.published, queue_dropped=dropped,
-                solves=int(final.get('solves', 0)),
+                solves=int(final.get('solves', 0)), extra=list(extra),
+                covered=sorted(dwells_covered([st for _, st in samples], gt)),
                 latency_s=[float(x) for x in lat])
 
 
@@ -194,33 +213,38 @@ def main():
     values = load_params_file(args.params)
     gt = np.load(os.path.join(args.bag, 'ground_truth', 'markers.npz'))
     t = time.perf_counter()
-    reference = len(offline_samples(args.bag, values))
-    print(f'offline front end: {reference} samples ({time.perf_counter() - t:.0f} s)',
-          flush=True)
+    ref_stamps = offline_samples(args.bag, values)
+    ref_dwells = dwells_covered(ref_stamps, gt)
+    reference = len(ref_dwells)
+    print(f'offline front end: {len(ref_stamps)} samples covering {reference} of '
+          f'{len(gt["dwell_start_ns"])} dwells ({time.perf_counter() - t:.0f} s)', flush=True)
     runs = []
-    for rate in args.rates:
-        out = os.path.join(tmp, f'rate_{rate:g}')
+    configs = [(args.rates[0], ['min_samples:=100000'])] + [(r, []) for r in args.rates]
+    for i, (rate, extra) in enumerate(configs):
+        out = os.path.join(tmp, f'run_{i}')
         os.makedirs(out)
-        r = run_rate(args.bag, args.params, rate, gt, out, env)
-        r['lost'] = reference - r['samples_produced']
+        r = run_rate(args.bag, args.params, rate, gt, out, env, extra)
+        r['lost'] = len(ref_dwells - set(r['covered']))
         lat = np.array(r['latency_s'])
-        print(f'rate {rate:g}x: cpu avg {r["cpu_avg"]:.0f} % peak {r["cpu_peak"]:.0f} %, '
-              f'samples {r["samples_produced"]}/{reference}, latency median '
+        print(f'rate {rate:g}x {extra}: cpu avg {r["cpu_avg"]:.0f} % peak {r["cpu_peak"]:.0f} %, '
+              f'dwells lost {r["lost"]}/{reference}, latency median '
               f'{np.median(lat) if len(lat) else float("nan"):.3f} s, '
               f'dropped {r["queue_dropped"]}, replay lag {r["max_lag_s"]:.2f} s', flush=True)
         runs.append(r)
-    ok = [r['rate'] for r in runs if r['lost'] <= 0]
+    ok = [r['rate'] for r in runs if r['lost'] <= 0 and not r['extra']]
     best = max(ok) if ok else None
-    first = runs[0]
+    first = runs[1]
+    front = runs[0]
     lat = np.array(first['latency_s'])
     rows = []
     for r in runs:
         la = np.array(r['latency_s'])
         js_sent = r['published'].get(values['joint_states_topic'], 0)
         img_sent = sum(v for k, v in r['published'].items() if k in values['image_topics'])
-        rows.append([f'{r["rate"]:g}x', f'{r["wall_s"]:.0f}', f'{r["cpu_avg"]:.0f}',
+        label = f'{r["rate"]:g}x' + (' (no solves)' if r['extra'] else '')
+        rows.append([label, f'{r["wall_s"]:.0f}', f'{r["cpu_avg"]:.0f}',
                      f'{r["cpu_peak"]:.0f}', f'{r["joint_states"]}/{js_sent}',
-                     f'{r["frames"]}/{img_sent}', f'{r["samples_produced"]}/{reference}',
+                     f'{r["frames"]}/{img_sent}', f'{reference - r["lost"]}/{reference}',
                      sum(r['queue_dropped'].values()),
                      f'{np.median(la):.3f}' if len(la) else '-',
                      f'{np.percentile(la, 95):.3f}' if len(la) else '-', r['solves']])
@@ -230,24 +254,26 @@ def main():
         f'The node replaying `{os.path.relpath(args.bag, ROOT)}` with '
         f'`{os.path.relpath(args.params, ROOT)}` through `armcal_ros.ros.replay` (reliable '
         f'publishers, real DDS on this machine); the node\'s CPU from /proc (solves included, '
-        f'% of one core, peak over one second). Samples: produced by the node\'s front end / '
-        f'by the offline front end on the same bag (fewer = dwells lost). Latency: last image '
+        f'% of one core, peak over one second). Dwells: ground-truth dwells with a stored sample '
+        f'in the node / with one offline (same front end and store fed in bag order). Latency: '
+        f'last image '
         f'of a dwell published -> its sample received on `~/samples`, seconds. Machine: '
         f'{machine()}; other jobs shared the two cores, so CPU and losses are upper bounds.',
         '',
         table(['rate', 'wall s', 'CPU avg %', 'CPU peak %', 'joint states recv/sent',
-               'images recv/sent', 'samples', 'queue drops', 'latency median s',
+               'images recv/sent', 'dwells', 'queue drops', 'latency median s',
                'latency p95 s', 'solves'], rows),
         '',
         f'At {first["rate"]:g}x: average CPU {first["cpu_avg"]:.0f} % of one core (target under '
-        f'50 %), peak {first["cpu_peak"]:.0f} %; latency median '
+        f'50 %), peak {first["cpu_peak"]:.0f} %; without solves (front end and ROS I/O only) '
+        f'{front["cpu_avg"]:.0f} %; latency median '
         f'{np.median(lat) if len(lat) else float("nan"):.3f} s. Highest rate with no dwell '
         f'lost: ' + (f'{best:g}x.' if best is not None else 'none of the rates tried.'),
     ])
     print(text)
     if not args.no_write:
         write_section('node', text)
-        write_json('node', dict(reference_samples=reference, runs=runs, best_rate=best,
+        write_json('node', dict(reference_dwells=reference, runs=runs, best_rate=best,
                                 machine=machine()))
 
 

@@ -281,3 +281,33 @@ def test_runtime_parameter_sets_are_checked(ros_context, tmp_path):
     finally:
         node.close(solve_timeout=1.0)
         node.destroy_node()
+
+
+def test_static_tf_through_tf2_ros_when_importable(ros_context, tmp_path, monkeypatch):
+    import sys
+    import types
+
+    from armcal_ros.ros.node import CalibratorNode
+    sent = []
+
+    class Broadcaster:
+        def __init__(self, node):
+            self.node = node
+
+        def sendTransform(self, transforms):
+            sent.extend(transforms)
+    node = CalibratorNode(context=ros_context, parameter_overrides=_overrides(tmp_path))
+    try:
+        monkeypatch.setitem(sys.modules, 'tf2_ros', None)      # import fails: one warning
+        node._publish_tf([_camera()], conv.time_msg(0))
+        node._publish_tf([_camera()], conv.time_msg(0))
+        assert node._tf_warned and not sent
+        monkeypatch.setitem(sys.modules, 'tf2_ros',
+                            types.SimpleNamespace(StaticTransformBroadcaster=Broadcaster))
+        node._publish_tf([_camera()], conv.time_msg(0))
+        assert [(t.header.frame_id, t.child_frame_id) for t in sent] == \
+            [('base_link', 'cam1_optical_frame')]
+        assert sent[0].transform.translation.x == pytest.approx(_camera().center[0])
+    finally:
+        node.close(solve_timeout=1.0)
+        node.destroy_node()

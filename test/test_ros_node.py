@@ -32,6 +32,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E
 from sensor_msgs.msg import CameraInfo, Image, JointState  # noqa: E402
 from sensor_msgs.srv import SetCameraInfo  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
+from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 
 from armcal_ros.io.calib_files import read_camera_info, read_cameras  # noqa: E402
 from armcal_ros.ros import conversions as conv  # noqa: E402
@@ -229,6 +230,7 @@ def live(ros_env, sim, client, tmp_path_factory):
     s.pose = {c: client.record(PoseWithCovarianceStamped, f'/armcal/{c}/pose')[0]
               for c in CAMS}
     s.diag, _ = client.record(DiagnosticArray, '/diagnostics', 10)
+    s.markers, _ = client.record(MarkerArray, '/armcal/markers')
     try:
         s.node = start_node(ros_env, s.params, root / 'node_a.log')
         s.procs.append(s.node)
@@ -329,6 +331,21 @@ def test_camera_info_consumer_reproduces_ground_truth_pixels(live, sim):
         Xc = est.to_camera(X)
         ray_err = np.linalg.norm(xn - Xc[:, :2] / Xc[:, 2:], axis=1) * K[0, 0]
         assert np.sqrt(np.mean(ray_err ** 2)) < 1.0 and ray_err.max() < 2.0, cam
+
+
+def test_markers_show_samples_bias_and_frusta(live):
+    def complete():
+        if not live.markers:
+            return None
+        by_ns = {m.ns: m for m in live.markers[-1][1].markers}
+        ok = ('samples' in by_ns and len(by_ns['samples'].points) == int(
+            live.main_diag['samples']) and len(by_ns.get('frusta', Marker()).points) == 16)
+        return by_ns if ok else None
+    by_ns = wait_until(complete, 10, 'markers with every sample and the frusta')
+    bias = [m for ns, m in by_ns.items() if ns.startswith('bias_x')]
+    assert bias and len(bias[0].points) == 2 * len(by_ns['samples'].points), \
+        'one bias vector per sample (the correlated model estimates the points)'
+    assert all(m.header.frame_id == 'base_link' for m in by_ns.values())
 
 
 def test_late_subscriber_gets_the_latest_camera_info(live, client):
@@ -483,3 +500,25 @@ def test_bad_parameters_stop_the_start_with_the_reason(ros_env, tmp_path, extra,
     assert 'refusing to start' in log
     for w in words:
         assert w in log, log
+
+
+def test_replay_loops_and_stops_cleanly_on_sigint(ros_env, client, tmp_path):
+    from armcal_ros.io.bag import BagWriter
+    bag = tmp_path / 'small'
+    with BagWriter(bag) as w:
+        for k in range(40):
+            w.write_joint_state('/loop_test/joint_states', 1_000_000_000 + k * 10_000_000,
+                                ['a'], [0.01 * k])
+    got, sub = client.record(JointState, '/loop_test/joint_states',
+                             QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
+    proc = Proc([sys.executable, '-m', 'armcal_ros.cli', 'replay', str(bag), '--loop',
+                 '--rate', '2', '--delay', '0.5'], ros_env, tmp_path / 'replay.log')
+    try:
+        wait_until(lambda: len(got) >= 100, 30, 'more messages than one pass of the bag')
+        assert proc.stop() == 0, proc.log()
+    finally:
+        proc.kill()
+        client.node.destroy_subscription(sub)
+    assert 'loop(s)' in proc.log()
+    positions = [m.position[0] for _, m in got]
+    assert positions.count(0.0) >= 2, 'the bag started again from its first message'

@@ -132,10 +132,6 @@ def add_arguments(p):
     p.add_argument('--quiet', action='store_true', help='no summary line')
 
 
-def _interrupt(signum, frame):
-    raise KeyboardInterrupt(f'signal {signum}')
-
-
 def run(args):
     """Run ``armcal replay``; return the exit status."""
     import rclpy
@@ -147,9 +143,10 @@ def run(args):
         raise ValueError(f'--delay must be >= 0 s, got {args.delay}')
     # Ctrl-C and SIGTERM stop the playback in order (publishers before the context).
     rclpy.init(args=None, signal_handler_options=SignalHandlerOptions.NO)
-    signal.signal(signal.SIGTERM, _interrupt)
     node = rclpy.create_node('armcal_replay')
     stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, frame: stop.set())
     result = {}
 
     def play():
@@ -167,8 +164,6 @@ def run(args):
         worker.start()
         while worker.is_alive():
             worker.join(0.1)
-    except KeyboardInterrupt:
-        stop.set()
     finally:
         stop.set()
         worker.join(5.0)

@@ -73,7 +73,7 @@ def diagnostic_statuses(s: NodeState, node_name='armcal') -> List[Status]:
     """
     cal = s.calibration
     out = s.last_outcome
-    if s.solving:
+    if cal is None and s.solving:
         state = 'solving'
     elif cal is None and s.n_samples < s.min_samples:
         state = f'collecting samples ({s.n_samples} of {s.min_samples})'
@@ -88,7 +88,7 @@ def diagnostic_statuses(s: NodeState, node_name='armcal') -> List[Status]:
         message = f'{state}; last solve not accepted: {out.reason}'
     elif cal is not None:
         message = (f'{state}: {cal.model} model, {cal.n_samples} samples, solved '
-                   f'{_iso(cal.solved_at)}')
+                   f'{_iso(cal.solved_at)}' + ('; solving again' if s.solving else ''))
     dropped = sum(s.queue_dropped.values())
     if dropped:
         level = max(level, WARN)
