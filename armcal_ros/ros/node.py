@@ -16,6 +16,13 @@ Threads and why:
 So a slow decode or a long solve never delays a callback, and a burst the worker cannot keep up
 with costs the oldest images (counted in diagnostics), never the joint states they need.
 
+Interface (node ``armcal``; DESIGN.md section 5): subscribes to ``joint_states_topic`` and
+``image_topics`` (best effort); publishes ``~/<camera>/camera_info`` and ``~/<camera>/pose``
+(reliable, transient local), ``~/markers`` (RViz), ``/diagnostics`` (1 Hz) and ``~/samples``
+(a PointStamped per stored sample, stamped with its dwell's median image time); serves
+``~/calibrate``, ``~/reset`` and ``~/save`` (std_srvs/Trigger); calls each driver's
+``SetCameraInfo`` service listed in ``set_camera_info_services``.
+
 Parameters are the table of :mod:`armcal_ros.params`, declared with descriptors and checked at
 start-up (the node exits with the reason) and on every runtime set (refused with the reason).
 Those that shape the subscriptions, the robot model or the front end are read-only; the noise
