@@ -16,7 +16,7 @@ setup(
         ('share/' + package_name + '/config', glob('config/*.yaml')),
         ('share/' + package_name + '/urdf', glob('urdf/*.urdf')),
     ],
-    install_requires=['setuptools', 'numpy', 'scipy', 'PyYAML'],
+    install_requires=['setuptools', 'numpy', 'scipy', 'PyYAML', 'threadpoolctl'],
     zip_safe=True,
     maintainer='armcal_ros developers',
     maintainer_email='armcal@example.com',
