@@ -21,22 +21,11 @@ from typing import Tuple
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from armcal_ros.core.geometry import skew  # noqa: F401  (re-exported)
+
 DISTORTION_NAMES = ('k1', 'k2', 'p1', 'p2', 'k3')
 INTRINSIC_NAMES = ('fx', 'fy', 'cx', 'cy')
 POSE_NAMES = ('wx', 'wy', 'wz', 'tx', 'ty', 'tz')
-
-
-def skew(v):
-    """Return the cross-product matrices [v]x of vectors ``v`` (..., 3) -> (..., 3, 3)."""
-    v = np.asarray(v, dtype=float)
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1] = -v[..., 2]
-    out[..., 0, 2] = v[..., 1]
-    out[..., 1, 0] = v[..., 2]
-    out[..., 1, 2] = -v[..., 0]
-    out[..., 2, 0] = -v[..., 1]
-    out[..., 2, 1] = v[..., 0]
-    return out
 
 
 def _as_points(X, name='X'):

@@ -59,23 +59,12 @@ from typing import List, Optional, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from armcal_ros.core.geometry import skew
 from .urdf import load_urdf, parse_urdf, UrdfModel
 
 ERROR_FIELDS = ('offset', 'tx', 'ty', 'tz', 'rx', 'ry', 'rz')
 TIP_ERROR_FIELDS = ('tx', 'ty', 'tz', 'rx', 'ry', 'rz')
 TIP_ERROR_PREFIX = 'tip'
-
-
-def _skew(v):
-    """Cross-product matrices [v]x of vectors (..., 3) -> (..., 3, 3)."""
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1] = -v[..., 2]
-    out[..., 0, 2] = v[..., 1]
-    out[..., 1, 0] = v[..., 2]
-    out[..., 1, 2] = -v[..., 0]
-    out[..., 2, 0] = -v[..., 1]
-    out[..., 2, 1] = v[..., 0]
-    return out
 
 
 def so3_exp(r):
@@ -91,7 +80,7 @@ def so3_right_jacobian(r):
     """
     r = np.asarray(r, float)
     t2 = float(r @ r)
-    K = _skew(r)
+    K = skew(r)
     if t2 < 1e-8:
         a = 0.5 - t2 / 24.0
         b = 1.0 / 6.0 - t2 / 120.0
@@ -439,11 +428,11 @@ class KinematicChain:
         for k, (Rk, pk) in enumerate(frames):
             r = e0[7 * k + 4:7 * k + 7]
             J[:, :, 7 * k + 1:7 * k + 4] = Rk @ so3_exp(r).T
-            J[:, :, 7 * k + 4:7 * k + 7] = -_skew(x - pk) @ (Rk @ so3_right_jacobian(r))
+            J[:, :, 7 * k + 4:7 * k + 7] = -skew(x - pk) @ (Rk @ so3_right_jacobian(r))
         if self.tip_errors:
             r = e0[-3:]
             J[:, :, -6:-3] = R_nom
-            J[:, :, -3:] = -_skew(x - p) @ (R @ so3_right_jacobian(r))
+            J[:, :, -3:] = -skew(x - p) @ (R @ so3_right_jacobian(r))
         return J
 
     # ---- gravity -----------------------------------------------------------------------

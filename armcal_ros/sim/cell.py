@@ -332,6 +332,33 @@ def _load_chain(s: SimSettings):
                                         tip_link=s.marker_link)
 
 
+def joint_ranges(chain, s: SimSettings):
+    """Joint ranges (lower, upper) the trajectory samples from, radians."""
+    n = chain.n_joints
+    if s.joint_range_deg is not None and len(s.joint_range_deg) == n:
+        lo, hi = np.radians(np.asarray(s.joint_range_deg, float)).T
+        return lo, hi
+    return np.maximum(chain.lower, -np.pi), np.minimum(chain.upper, np.pi)
+
+
+def place_cameras(s: SimSettings, rng):
+    """
+    Draw the cell's cameras around the workspace.
+
+    A camera behind the robot would look at the marker through the arm most of the time, so the
+    ring is redrawn until every camera is on the workspace side of the base.
+    """
+    wmin, wmax = np.asarray(s.workspace_min, float), np.asarray(s.workspace_max, float)
+    for _ in range(1000):
+        cams = ring_of_cameras(len(s.camera_names), 0.5 * (wmin + wmax), rng,
+                               distance=s.camera_distance, height=s.camera_height,
+                               width=s.image_width, height_px=s.image_height, focal=s.focal,
+                               names=list(s.camera_names))
+        if all(c.center[0] > s.camera_min_x for c in cams):
+            break
+    return cams
+
+
 def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, chain=None):
     """
     Simulate a cell; returns a :class:`SimResult` (no images are rendered until asked).
@@ -348,23 +375,11 @@ def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, ch
     rng = np.random.default_rng(seed)
     chain = chain or _load_chain(s)
     n = chain.n_joints
-    if s.joint_range_deg is not None and len(s.joint_range_deg) == n:
-        lo, hi = (np.radians(np.asarray(s.joint_range_deg, float)).T)
-    else:
-        lo, hi = np.maximum(chain.lower, -np.pi), np.minimum(chain.upper, np.pi)
+    lo, hi = joint_ranges(chain, s)
     hop = np.radians(np.resize(np.asarray(s.hop_sigma_deg, float), n))
     wmin, wmax = np.asarray(s.workspace_min, float), np.asarray(s.workspace_max, float)
     point = np.asarray(s.marker_offset, float)
-
-    # A camera behind the robot would look at the marker through the arm most of the time;
-    # redraw the ring until every camera is on the workspace side of the base.
-    for _ in range(1000):
-        cams = ring_of_cameras(len(s.camera_names), 0.5 * (wmin + wmax), rng,
-                               distance=s.camera_distance, height=s.camera_height,
-                               width=s.image_width, height_px=s.image_height, focal=s.focal,
-                               names=list(s.camera_names))
-        if all(c.center[0] > s.camera_min_x for c in cams):
-            break
+    cams = place_cameras(s, rng)
 
     def valid(q, need=len(cams)):
         q = np.atleast_2d(q)

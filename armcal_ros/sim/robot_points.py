@@ -20,8 +20,8 @@ import numpy as np
 from armcal_ros.core.adjustment import Observations
 from armcal_ros.core.kinematic_prior import KinematicData
 from armcal_ros.sim.bias_field import FourierBiasField
-from armcal_ros.sim.cameras import ring_of_cameras
-from armcal_ros.sim.cell import (_load_chain, link_occluded, SCENARIOS, SimSettings)
+from armcal_ros.sim.cell import (_load_chain, joint_ranges, link_occluded, place_cameras,
+                                 SCENARIOS, SimSettings)
 from armcal_ros.sim.synthetic import SyntheticProblem
 from armcal_ros.sim.true_robot import (draw_compliance, draw_geometric_errors, draw_periodic,
                                        TrueRobot)
@@ -77,19 +77,10 @@ def make_robot_problem(scenario='geometric', n_points=300, seed=0, n_test=500,
     rng = np.random.default_rng(seed)
     chain = chain or _load_chain(s)
     n = chain.n_joints
-    if s.joint_range_deg is not None and len(s.joint_range_deg) == n:
-        lo, hi = np.radians(np.asarray(s.joint_range_deg, float)).T
-    else:
-        lo, hi = np.maximum(chain.lower, -np.pi), np.minimum(chain.upper, np.pi)
+    lo, hi = joint_ranges(chain, s)
     wmin, wmax = np.asarray(s.workspace_min, float), np.asarray(s.workspace_max, float)
     point = np.asarray(s.marker_offset, float)
-    for _ in range(1000):
-        cams = ring_of_cameras(len(s.camera_names), 0.5 * (wmin + wmax), rng,
-                               distance=s.camera_distance, height=s.camera_height,
-                               width=s.image_width, height_px=s.image_height, focal=s.focal,
-                               names=list(s.camera_names))
-        if all(c.center[0] > s.camera_min_x for c in cams):
-            break
+    cams = place_cameras(s, rng)
     q_sample = rng.uniform(lo, hi, (500, n))
     robot = build_true_robot(chain, scenario, rng, s, q_sample, field)
 
