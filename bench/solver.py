@@ -20,10 +20,10 @@ import time
 # Single-threaded BLAS, as the engine solves (threaded OpenBLAS on 2 shared cores is erratic).
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
-import numpy as np
-from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
-from scipy.spatial.transform import Rotation
+import numpy as np  # noqa: E402
+from scipy.optimize import least_squares  # noqa: E402
+from scipy.sparse import lil_matrix  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _report import machine, table, write_json, write_section  # noqa: E402
