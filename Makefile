@@ -22,8 +22,16 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -ra test
 
+# Every benchmark script; each prints its table and rewrites its section of docs/BENCHMARKS.md.
 bench: $(STAMP)
 	$(PY) bench/solver.py
+	$(PY) bench/accuracy.py
+	$(PY) bench/scaling.py
+	$(PY) bench/bias.py
+	$(PY) bench/pipeline.py
+	$(PY) bench/bag_accuracy.py
+	$(PY) bench/node.py
+	$(PY) bench/real_data.py
 
 clean:
 	rm -rf $(VENV) build install log *.egg-info
