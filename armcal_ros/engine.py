@@ -289,14 +289,17 @@ class CalibrationEngine:
         """
         Solve now on a snapshot of the samples (synchronously) and maybe accept the result.
 
+        It always solves, due or not (``force`` is accepted for symmetry with
+        :meth:`maybe_solve_async`).
+
         BLAS runs single-threaded here: the solver's matrices are small to medium, and a
         multi-threaded OpenBLAS competing with the node's other threads on a loaded 2-core
         machine made the ``auto`` search 13 x slower (measured: 60 s against 4.7 s).
         """
         with threadpool_limits(limits=1, user_api='blas'):
-            return self._solve(force)
+            return self._solve()
 
-    def _solve(self, force=False) -> SolveOutcome:
+    def _solve(self) -> SolveOutcome:
         t0 = time.perf_counter()
         with self._lock:
             self._last_solve_start = self.clock()

@@ -22,7 +22,8 @@ from armcal_ros.engine import CalibrationEngine, EngineSettings, SolveOutcome
 from armcal_ros.frontend.store import SampleStore
 from armcal_ros.io.bag import bag_topics, DeserializationError, iter_raw
 from armcal_ros.io.calib_files import atomic_write_text
-from armcal_ros.params import (load_params_file, prior_settings, solver_settings, urdf_text)
+from armcal_ros.params import (check_value, load_params_file, prior_settings, solver_settings,
+                               urdf_text)
 from armcal_ros.pipeline import make_detectors, SampleCollector
 from armcal_ros.robot.kinematics import KinematicChain
 
@@ -257,7 +258,6 @@ def add_arguments(p):
 def run(args):
     """Run ``armcal calibrate``; return the exit status (errors raise with a one-line reason)."""
     from armcal_ros.io.rct_import import is_rct_folder
-    from armcal_ros.params import check_value
     rct = is_rct_folder(args.bag)
     try:
         values = load_params_file(args.params, require_robot_model=not rct)

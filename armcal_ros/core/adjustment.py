@@ -50,7 +50,8 @@ from scipy.linalg import cho_factor, cho_solve, LinAlgError
 
 from armcal_ros.core.camera import (Camera, DISTORTION_NAMES, INTRINSIC_NAMES,
                                     project_with_jacobians)
-from armcal_ros.core.priors import PointPrior, PriorSettings
+from armcal_ros.core.geometry import skew
+from armcal_ros.core.priors import kernel_matrix, PointPrior, PriorSettings
 from armcal_ros.core.robust import check_loss, rho, weights
 
 # Nielsen (1999) shrinks lambda by at most 3 per good step; with steps that match the model well
@@ -191,7 +192,6 @@ class AdjustmentResult:
             return out
         if pr.kind == 'dense':
             st = pr.settings
-            from armcal_ros.core.priors import kernel_matrix
             Ks = st.bias_sigma ** 2 * kernel_matrix(measured, pr.measured, st.coherence_length,
                                                     st.kernel)
             return Ks @ pr.gradient_half(self.points)
@@ -710,7 +710,6 @@ def _camera_estimates(cams, obs, X, active, cov, layout):
             std[DISTORTION_NAMES[i]] = float(sd[4 + k])
         # Camera centre C = -R^T t with R <- exp(w) R, t <- t + dt:
         # dC/dw = -R^T [t]x, dC/dt = -R^T (first order at w = 0).
-        from armcal_ros.core.camera import skew
         Jc = np.hstack([-c.rotation.T @ skew(c.translation), -c.rotation.T])
         Cp = C[4 + nd:, 4 + nd:]
         cc = Jc @ Cp @ Jc.T

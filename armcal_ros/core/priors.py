@@ -38,7 +38,7 @@ The solver keeps g next to the cameras in the reduced system; the points stay 3x
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
 KERNELS = ('squared_exponential', 'exponential', 'matern32')
 NOISE_MODELS = ('fixed', 'independent', 'correlated', 'kinematic', 'hybrid', 'auto')
@@ -233,7 +233,6 @@ class PointPrior:
         if self.kind == 'block':
             return (D / self.settings.point_sigma).reshape(-1)
         # Whitening with the Cholesky factor: r = L^-1 D per axis.
-        from scipy.linalg import solve_triangular
         return solve_triangular(self._chol[0], D, lower=True).reshape(-1)
 
     def cost(self, X):
