@@ -1,12 +1,19 @@
 """
-From joint states and images to samples: the front end the node and the offline CLI share.
+From joint states or link poses, and images, to samples: the front end the node and the CLI share.
 
-:class:`SampleCollector` takes plain inputs - a joint state as (stamp, names, positions) and an
-image as (camera, stamp, message-like object) - and returns samples ready for the engine.  Images
-are held undecoded until their pairing is known, so only frames taken while the arm was still are
-decoded and searched for the marker.  Every rejected input is counted by reason (diagnostics) and
+:class:`SampleCollector` takes plain inputs - a joint state as (stamp, names, positions), or with
+pose input a measured link pose as (stamp, translation, quaternion), and an image as (camera,
+stamp, message-like object) - and returns samples ready for the engine.  Images are held
+undecoded until their pairing is known, so only frames taken while the target was still are
+decoded and searched for it.  Every rejected input is counted by reason (diagnostics) and
 reported once through an optional ``log`` callback, never raised: a malformed message, an
 unknown joint, a NaN, a time jump or a missing camera costs that input, not the session.
+
+Targets: a sphere or an ArUco tag is one point at ``marker_offset`` on the marker link (a
+sample is one 3-D point); a ChArUco board (:class:`~armcal_ros.frontend.samples.BoardTarget`)
+gives many corners per sample, with the link pose (measured, or from forward kinematics) that
+places them.  Stillness and the dwell radius then apply to the fastest / farthest of the
+board's outer corners, so a turn of the board about its centre is not taken for stillness.
 """
 
 import collections
@@ -15,22 +22,38 @@ from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
+from armcal_ros.core.target import optional_pose
+from armcal_ros.frontend.charuco import CharucoBoard, CharucoDetector
 from armcal_ros.frontend.detectors import make_detector
 from armcal_ros.frontend.image_decode import decode_image_msg, ImageDecodeError
-from armcal_ros.frontend.pairing import DwellPooler, FramePairer, JointStatus, PairStatus
+from armcal_ros.frontend.pairing import (DwellPooler, FramePairer, JointStatus, PairStatus)
+from armcal_ros.frontend.pose_input import (mean_pose_vector, pose_points, pose_vector_matrix,
+                                            PoseHistory)
+from armcal_ros.frontend.samples import BoardTarget
+from armcal_ros.params import charuco_settings
 from armcal_ros.robot.kinematics import KinematicChain
 
 
-def make_detectors(values, camera_names):
+def make_board(values) -> CharucoBoard:
+    """Return the ChArUco board of the ``charuco_*`` parameters (ValueError names unset ones)."""
+    return CharucoBoard(**charuco_settings(values))
+
+
+def board_target(values, board: CharucoBoard) -> BoardTarget:
+    """Return the board target: its corners, ``target_pose_guess`` and the estimation flag."""
+    return BoardTarget(board.points(), optional_pose(values['target_pose_guess'] or None),
+                       values['estimate_marker_offset'])
+
+
+def make_detectors(values, camera_names, board: Optional[CharucoBoard] = None):
     """One detector per camera (each tracks its own marker position) from parameter values."""
-    if values['marker_type'] == 'charuco':
-        # The joint-state front end pools one point per target id at the FK marker position;
-        # a board's corners need the board path (pose input or a robot_cal_tools folder).
-        raise ValueError('parameter marker_type: charuco works with pose input (pose_topic) '
-                         'or a robot_cal_tools folder; with joint states use sphere or aruco')
     out = {}
+    if values['marker_type'] == 'charuco':
+        board = board or make_board(values)
     for name in camera_names:
-        if values['marker_type'] == 'sphere':
+        if values['marker_type'] == 'charuco':
+            out[name] = CharucoDetector(board)
+        elif values['marker_type'] == 'sphere':
             out[name] = make_detector('sphere', min_radius_px=values['sphere_min_radius_px'],
                                       max_radius_px=values['sphere_max_radius_px'])
         else:
@@ -38,6 +61,22 @@ def make_detectors(values, camera_names):
             out[name] = make_detector('aruco', dictionary=values['aruco_dictionary'],
                                       marker_id=None if mid < 0 else mid)
     return out
+
+
+def pose_from_msg(msg):
+    """
+    Return (translation (3,), quaternion xyzw (4,)) of a PoseStamped or TransformStamped.
+
+    Duck-typed on the message's fields, so rosbags' dataclasses and rclpy's messages both work.
+    """
+    if hasattr(msg, 'pose'):
+        p, o = msg.pose.position, msg.pose.orientation
+    elif hasattr(msg, 'transform'):
+        p, o = msg.transform.translation, msg.transform.rotation
+    else:
+        raise ValueError(f'{type(msg).__name__} is neither a PoseStamped nor a '
+                         'TransformStamped')
+    return (p.x, p.y, p.z), (o.x, o.y, o.z, o.w)
 
 
 class RateLimitedLog:
@@ -65,25 +104,55 @@ class SampleCollector:
     """
     Pair, filter, detect and pool: inputs in, :class:`~armcal_ros.frontend.samples.Sample` out.
 
-    ``counts`` holds how many inputs ended where (``joint_states``, ``frames``,
+    ``chain`` is the robot model for joint input (:meth:`add_joint_state`); None selects pose
+    input (:meth:`add_pose`, the measured pose of the marker link in the base frame, whose
+    history bridges gaps of at most ``max_pose_gap_s``).  ``board`` makes the target a board
+    (samples carry the link pose and the corners); otherwise it is one point at
+    ``marker_offset`` in the marker link.
+
+    ``counts`` holds how many inputs ended where (``joint_states`` or ``poses``, ``frames``,
     ``frames_still``, ``detections``, and every rejection reason), for diagnostics.
     ``image_sizes`` records each camera's (width, height) from its decoded images.
     """
 
-    def __init__(self, chain: KinematicChain, marker_offset, camera_names, detectors,
-                 max_marker_speed=0.0375, dwell_radius=0.001, log=None):
+    def __init__(self, chain: Optional[KinematicChain], marker_offset, camera_names, detectors,
+                 max_marker_speed=0.0375, dwell_radius=0.001, log=None,
+                 board: Optional[BoardTarget] = None, max_pose_gap_s=0.1):
         self.chain = chain
+        self.pose_input = chain is None
+        self.board = board
         self.marker_offset = np.asarray(marker_offset, float).reshape(3)
         self.camera_names = list(camera_names)
         self.detectors = detectors
         missing = [c for c in self.camera_names if c not in detectors]
         if missing:
             raise ValueError(f'detectors: no detector for cameras {missing}')
-
-        def fk(Q):
-            return chain.fk(Q, self.marker_offset)
-        self.pairer = FramePairer(chain.joint_names, fk, max_marker_speed=max_marker_speed)
-        self.pooler = DwellPooler(fk, dwell_radius=dwell_radius)
+        if not max_pose_gap_s > 0:
+            raise ValueError(f'max_pose_gap_s must be > 0, got {max_pose_gap_s}')
+        # The points whose speed and spread decide stillness and dwells, in the link frame.
+        ref = board.reference_points_in_link() if board is not None else \
+            self.marker_offset[None, :]
+        if self.pose_input:
+            def fk(C):
+                return pose_points(C, ref)
+            history = PoseHistory(max_gap_ns=int(max_pose_gap_s * 1e9))
+            self.pairer = FramePairer((), fk, max_marker_speed=max_marker_speed,
+                                      history=history)
+            mean = mean_pose_vector
+        else:
+            if board is None:
+                def fk(Q):
+                    return chain.fk(Q, self.marker_offset)
+            else:
+                def fk(Q):
+                    T = chain.fk_pose(Q)
+                    return np.einsum('mij,rj->mri', T[:, :3, :3], ref) + T[:, None, :3, 3]
+            self.pairer = FramePairer(chain.joint_names, fk, max_marker_speed=max_marker_speed)
+            mean = None
+        # A board's corners come from its markers' ids and a local homography fit: one frame
+        # is trustworthy; a glint can pass as a sphere, so a sphere needs two.
+        self.pooler = DwellPooler(fk, dwell_radius=dwell_radius,
+                                  min_frames=1 if board is not None else 2, mean_config=mean)
         self.counts = collections.Counter()
         self.image_sizes: Dict[str, tuple] = {}
         self.log = RateLimitedLog(log)
@@ -95,6 +164,10 @@ class SampleCollector:
 
     def add_joint_state(self, stamp_ns, names, positions) -> List:
         """Feed one JointState; return the samples completed (usually none)."""
+        if self.pose_input:
+            self._count('joint_state_unused', 'joint state ignored: this collector takes '
+                        'pose input')
+            return []
         self.counts['joint_states'] += 1
         try:
             status, ready = self.pairer.add_joint_state(stamp_ns, list(names),
@@ -109,6 +182,30 @@ class SampleCollector:
                         f'joint state rejected: {status.value}')
         return self._process(ready)
 
+    def add_pose(self, stamp_ns, translation, quat_xyzw) -> List:
+        """
+        Feed one measured pose of the marker link (pose input); return the samples completed.
+
+        ``translation`` (3,) metres and ``quat_xyzw`` (4,) unit quaternion, in the base frame.
+        """
+        if not self.pose_input:
+            self._count('pose_unused', 'pose ignored: this collector takes joint states')
+            return []
+        self.counts['poses'] += 1
+        try:
+            status, ready = self.pairer.add_pose(stamp_ns, translation, quat_xyzw)
+        except (TypeError, ValueError) as exc:
+            self._count('pose_invalid', f'pose rejected: {exc}')
+            return []
+        if status is JointStatus.TIME_JUMP:
+            self._count('time_jump', 'pose time jumped backwards: pose history reset')
+        elif status is JointStatus.NON_FINITE:
+            self._count('pose_invalid', 'pose rejected: it needs a finite translation and a '
+                        'unit quaternion')
+        elif status is not JointStatus.OK:
+            self._count(f'pose_{status.value}', f'pose rejected: {status.value}')
+        return self._process(ready)
+
     def add_image(self, camera, stamp_ns, msg) -> List:
         """Feed one image message (Image or CompressedImage, undecoded); return samples."""
         if camera not in self.detectors:
@@ -119,7 +216,7 @@ class SampleCollector:
 
     def flush(self) -> List:
         """Decide every waiting frame and close the open dwell (end of a bag)."""
-        return self._process(self.pairer.flush()) + self.pooler.flush()
+        return self._process(self.pairer.flush()) + self._complete(self.pooler.flush())
 
     def reset(self):
         """Drop pending frames, the joint history and the open dwell."""
@@ -136,6 +233,19 @@ class SampleCollector:
             else:
                 self.counts[f'frames_{frame.status.value}'] += 1
             samples.extend(self.pooler.add(frame, dets))
+        return self._complete(samples)
+
+    def _complete(self, samples) -> List:
+        """Give pooled samples their link pose (pose input, boards) and board geometry."""
+        for s in samples:
+            if self.pose_input:
+                s.pose = pose_vector_matrix(s.q)[0]
+                s.q = None
+            elif self.board is not None:
+                s.pose = self.chain.fk_pose(s.q)[0]
+            if self.board is not None:
+                c = self.board.centre_in_link()
+                s.point_nominal = s.pose[:3, :3] @ c + s.pose[:3, 3]
         return samples
 
     def _detect(self, camera, msg):

@@ -252,8 +252,10 @@ class PairedFrame:
     """
     A frame whose pairing is decided.
 
-    ``q`` (n,) joint angles at the stamp and ``point`` (3,) the nominal marker position, set
-    when ``status`` is STILL or MOVING; ``speed`` marker speed (m/s) or NaN; ``payload``
+    ``q`` (n,) joint angles at the stamp (or, with pose input, the link pose as a
+    configuration vector) and ``point`` (3,) the nominal marker position ((R, 3) reference
+    points for an extended target), set when ``status`` is STILL or MOVING; ``speed`` marker
+    speed (m/s) or NaN; ``payload``
     whatever the caller handed to :meth:`FramePairer.add_frame`.
     """
 
@@ -271,7 +273,9 @@ class FramePairer:
     Pairs camera frames with interpolated joint angles and decides stillness.
 
     ``fk(Q (M, n)) -> (M, 3)`` gives the nominal marker position for joint vectors in the
-    order of ``joint_names``.  The marker speed at stamp t is
+    order of ``joint_names``; for an extended target (a board) it may return R reference
+    points per joint vector, (M, R, 3), and the fastest of them counts.  The marker speed at
+    stamp t is
 
         v = max(|p(t) - p(t - W)|, |p(t + W) - p(t)|) / W,   W = speed_window_ns,
 
@@ -280,12 +284,17 @@ class FramePairer:
     reversing through t.  A frame is STILL when v <= ``max_marker_speed``.
 
     Frames wait (at most ``max_pending`` of them) until the history reaches t + W.
+
+    ``history`` replaces the joint history by another with its interface (``add``,
+    ``lookup``, ``first_stamp``, ``last_stamp``, ``clear``, ``jump_threshold_ns``): with a
+    :class:`~armcal_ros.frontend.pose_input.PoseHistory` the pairer takes measured link poses
+    (:meth:`add_pose`) and ``fk`` maps pose vectors; ``joint_names`` is then unused.
     """
 
     def __init__(self, joint_names, fk, max_marker_speed=DEFAULT_MAX_MARKER_SPEED,
                  speed_window_ns=20_000_000, max_gap_ns=50_000_000,
                  jump_threshold_ns=500_000_000, capacity=4096, max_pending=256,
-                 batch_ns=100_000_000):
+                 batch_ns=100_000_000, history=None):
         if not callable(fk):
             raise ValueError('fk must be callable: fk(Q (M, n)) -> (M, 3)')
         self.fk = fk
@@ -302,14 +311,16 @@ class FramePairer:
         if int(max_pending) < 1:
             raise ValueError(f'max_pending must be >= 1, got {max_pending!r}')
         self.max_pending = int(max_pending)
-        self.history = JointHistory(joint_names, capacity=capacity, max_gap_ns=max_gap_ns,
-                                    jump_threshold_ns=jump_threshold_ns)
+        if history is None:
+            history = JointHistory(joint_names, capacity=capacity, max_gap_ns=max_gap_ns,
+                                   jump_threshold_ns=jump_threshold_ns)
+        self.history = history
         self._pending = []
 
     @property
     def joint_names(self):
-        """Chain joint names, the order of ``q``."""
-        return self.history.joint_names
+        """Chain joint names, the order of ``q`` (empty with pose input)."""
+        return getattr(self.history, 'joint_names', ())
 
     @property
     def n_pending(self):
@@ -318,7 +329,13 @@ class FramePairer:
 
     def add_joint_state(self, stamp_ns, names, positions):
         """Add a JointState; return (JointStatus, frames that became decidable)."""
-        status = self.history.add(stamp_ns, names, positions)
+        return self._added(stamp_ns, self.history.add(stamp_ns, names, positions))
+
+    def add_pose(self, stamp_ns, translation, quat_xyzw):
+        """Add a measured link pose (pose history only); return (JointStatus, frames)."""
+        return self._added(stamp_ns, self.history.add(stamp_ns, translation, quat_xyzw))
+
+    def _added(self, stamp_ns, status):
         ready = []
         if status is JointStatus.TIME_JUMP:
             # Frames stamped after the new time belong to the old timeline.
@@ -392,10 +409,12 @@ class FramePairer:
         statuses = statuses.reshape(-1, 3)
         q = q.reshape(len(frames), 3, -1)
         good = np.array([all(s is PairStatus.OK for s in row) for row in statuses])
-        points = np.full((len(frames), 3, 3), np.nan)
+        points = None
         if np.any(good):
             p = np.asarray(self.fk(q[good].reshape(-1, q.shape[2])), dtype=float)
-            points[good] = p.reshape(-1, 3, 3)
+            p = p.reshape(int(np.count_nonzero(good)), 3, -1, 3)
+            points = np.full((len(frames),) + p.shape[1:], np.nan)
+            points[good] = p
         out = []
         for i, (camera, stamp, payload) in enumerate(frames):
             if not good[i]:
@@ -408,10 +427,12 @@ class FramePairer:
                 out.append(PairedFrame(camera, stamp, payload, status))
                 continue
             p0, p1, p2 = points[i]
-            speed = max(np.linalg.norm(p1 - p0), np.linalg.norm(p2 - p1)) / (w * 1e-9)
+            speed = max(np.linalg.norm(p1 - p0, axis=1).max(),
+                        np.linalg.norm(p2 - p1, axis=1).max()) / (w * 1e-9)
             status = PairStatus.STILL if speed <= self.max_marker_speed else PairStatus.MOVING
+            point = p1[0].copy() if len(p1) == 1 else p1.copy()
             out.append(PairedFrame(camera, stamp, payload, status, q=q[i, 1].copy(),
-                                   point=p1.copy(), speed=float(speed)))
+                                   point=point, speed=float(speed)))
         return out
 
 
@@ -446,15 +467,23 @@ class DwellPooler:
     On closing, per camera and target id: the median of the frames' detections, frames
     further than ``outlier_px`` from it dropped (a spurious detection in one frame), and the
     mean of the rest; kept if at least ``min_frames`` remain.  ``spread_px`` is their RMS
-    distance from the mean.  The sample's ``q`` is the mean joint vector and
-    ``point_nominal = fk(q)``.  At most ``max_frames`` frames per camera are kept per dwell.
+    distance from the mean.  The sample's ``q`` is the mean joint vector
+    (``mean_config(Q (F, n))``, the arithmetic mean by default; pose input passes a rotation-
+    aware mean of its pose vectors) and ``point_nominal = fk(q)``.  When ``fk`` returns R > 1
+    reference points (an extended target), the dwell radius applies to the farthest of them
+    and the sample carries them as ``reference_points`` (``point_nominal`` the first; the
+    caller completes the sample).  At most ``max_frames`` frames per camera are kept per dwell.
     """
 
     def __init__(self, fk, dwell_radius=0.001, max_gap_ns=500_000_000,
-                 max_dwell_ns=10_000_000_000, min_frames=2, outlier_px=2.0, max_frames=200):
+                 max_dwell_ns=10_000_000_000, min_frames=2, outlier_px=2.0, max_frames=200,
+                 mean_config=None):
         if not callable(fk):
             raise ValueError('fk must be callable: fk(Q (M, n)) -> (M, 3)')
+        if mean_config is not None and not callable(mean_config):
+            raise ValueError('mean_config must be callable: mean_config(Q (F, n)) -> (n,)')
         self.fk = fk
+        self.mean_config = mean_config or (lambda Q: np.mean(Q, axis=0))
         self.dwell_radius = float(dwell_radius)
         if not self.dwell_radius > 0:
             raise ValueError(f'dwell_radius must be positive (m), got {dwell_radius}')
@@ -487,7 +516,8 @@ class DwellPooler:
             return out
         dwell = self._dwell
         if dwell is not None:
-            far = np.linalg.norm(frame.point - dwell.anchor) > self.dwell_radius
+            far = np.linalg.norm(np.reshape(frame.point - dwell.anchor, (-1, 3)),
+                                 axis=1).max() > self.dwell_radius
             gap = (frame.stamp_ns - dwell.last_stamp > self.max_gap_ns
                    or dwell.first_stamp - frame.stamp_ns > self.max_gap_ns)
             too_long = frame.stamp_ns - dwell.first_stamp > self.max_dwell_ns
@@ -518,10 +548,11 @@ class DwellPooler:
                 observations[camera] = obs
         if not observations:
             return []
-        q = np.mean(np.asarray(dwell.qs), axis=0)
-        point = np.asarray(self.fk(q[None, :]), dtype=float).reshape(3)
+        q = np.asarray(self.mean_config(np.asarray(dwell.qs)), dtype=float).reshape(-1)
+        points = np.asarray(self.fk(q[None, :]), dtype=float).reshape(-1, 3)
         stamp = int(np.median(np.asarray(dwell.stamps, dtype=np.int64)))
-        return [Sample(point_nominal=point, observations=observations, stamp_ns=stamp, q=q)]
+        return [Sample(point_nominal=points[0], observations=observations, stamp_ns=stamp, q=q,
+                       reference_points=points if len(points) > 1 else None)]
 
     def _pool_camera(self, frames):
         ids = sorted({i for _, uvs in frames for i in uvs})

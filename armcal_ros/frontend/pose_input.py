@@ -5,15 +5,181 @@ Robots that report a flange pose (a geometry_msgs PoseStamped / TransformStamped
 instead of joint angles give samples directly: the link pose at an image's stamp is interpolated
 between the bracketing pose messages - the translation linearly, the rotation by spherical
 linear interpolation - and refused when the stamp is outside the history or the bracketing gap is
-longer than ``max_gap_s``.  Stillness is judged as for joint input: the speed of a point at
-``radius`` from the link origin (the target's extent) must be below ``max_speed``
-(|v| + |omega| radius, from the bracketing messages).
+longer than ``max_gap_s``.
+
+Two containers:
+
+- :class:`PoseHistory`, the live one: a bounded, time-ordered history with the interface of
+  :class:`~armcal_ros.frontend.pairing.JointHistory`, so that
+  :class:`~armcal_ros.frontend.pairing.FramePairer` pairs frames with poses exactly as with joint
+  states (same pending, batching, time-jump and stillness rules).  Its "configuration" is the
+  pose vector c = (x, y, z, qx, qy, qz, qw); :func:`pose_points` maps it to the target's
+  reference points and :func:`mean_pose_vector` pools a dwell.
+- :class:`PoseTrack`, for a whole recording read at once (unbounded, any insertion order); its
+  stillness is the speed of a point at ``radius`` from the link origin, |v| + |omega| radius,
+  from the bracketing messages.
 """
 
+import bisect
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
+
+from armcal_ros.frontend.pairing import JointStatus, PairStatus
+
+
+def _check_pose(translation, quat_xyzw):
+    t = np.asarray(translation, float).reshape(3)
+    q = np.asarray(quat_xyzw, float).reshape(4)
+    n = np.linalg.norm(q)
+    if not (np.all(np.isfinite(t)) and np.isfinite(n) and abs(n - 1.0) < 1e-3):
+        raise ValueError('pose must have a finite translation and a unit quaternion')
+    return t, q / n
+
+
+def pose_vector_matrix(c):
+    """Return the (M, 4, 4) transforms of pose vectors c (M, 7) = (x, y, z, qx, qy, qz, qw)."""
+    c = np.asarray(c, float).reshape(-1, 7)
+    T = np.zeros((len(c), 4, 4))
+    T[:, :3, :3] = Rotation.from_quat(c[:, 3:]).as_matrix()
+    T[:, :3, 3] = c[:, :3]
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def pose_points(c, points_in_link):
+    """
+    Return the base-frame positions of link-frame points at pose vectors ``c`` (M, 7).
+
+    ``points_in_link`` (R, 3); the result is (M, 3) for R = 1 (a point target) and (M, R, 3)
+    otherwise - the shape :class:`~armcal_ros.frontend.pairing.FramePairer` expects of ``fk``.
+    """
+    T = pose_vector_matrix(c)
+    p = np.asarray(points_in_link, float).reshape(-1, 3)
+    X = np.einsum('mij,rj->mri', T[:, :3, :3], p) + T[:, None, :3, 3]
+    return X[:, 0] if len(p) == 1 else X
+
+
+def mean_pose_vector(C):
+    """Pool a dwell's pose vectors (F, 7): mean translation, chordal L2 mean rotation."""
+    C = np.asarray(C, float).reshape(-1, 7)
+    q = Rotation.from_quat(C[:, 3:]).mean().as_quat()
+    return np.concatenate([C[:, :3].mean(axis=0), q])
+
+
+def _interpolate(t, p, q, stamps, max_gap_ns):
+    """
+    Interpolate sorted poses (t (N,), p (N, 3), q (N, 4)) at ``stamps`` (M,).
+
+    Returns (statuses (M,) PairStatus, pose vectors (M, 7), NaN where not OK).
+    """
+    ts = np.asarray(stamps, np.int64).reshape(-1)
+    out = np.full((len(ts), 7), np.nan)
+    st = np.full(len(ts), PairStatus.OK, dtype=object)
+    if len(t) == 0:
+        st[:] = PairStatus.EMPTY
+        return st, out
+    hi = np.searchsorted(t, ts, side='left')
+    exact = (hi < len(t)) & (t[np.minimum(hi, len(t) - 1)] == ts)
+    before = (hi == 0) & ~exact
+    after = hi == len(t)
+    st[before] = PairStatus.BEFORE_HISTORY
+    st[after] = PairStatus.AFTER_HISTORY
+    out[exact, :3] = p[hi[exact]]
+    out[exact, 3:] = q[hi[exact]]
+    inner = ~(before | after | exact)
+    if np.any(inner):
+        h = hi[inner]
+        lo = h - 1
+        gap = t[h] - t[lo]
+        a = (ts[inner] - t[lo]) / gap
+        r0 = Rotation.from_quat(q[lo])
+        rel = (r0.inv() * Rotation.from_quat(q[h])).as_rotvec()
+        vals = np.empty((len(h), 7))
+        vals[:, :3] = p[lo] + a[:, None] * (p[h] - p[lo])
+        vals[:, 3:] = (r0 * Rotation.from_rotvec(a[:, None] * rel)).as_quat()
+        bad = gap > max_gap_ns
+        vals[bad] = np.nan
+        out[inner] = vals
+        s = st[inner]
+        s[bad] = PairStatus.GAP
+        st[inner] = s
+    return st, out
+
+
+class PoseHistory:
+    """
+    A bounded, time-ordered history of link poses with slerp interpolation (live pose input).
+
+    The interface of :class:`~armcal_ros.frontend.pairing.JointHistory`: :meth:`add` returns a
+    :class:`~armcal_ros.frontend.pairing.JointStatus` (a stamp older than the newest by more than
+    ``jump_threshold_ns`` clears the history - a looping bag - and a slightly older one is
+    dropped), :meth:`lookup` returns statuses and pose vectors.  Keeps the newest ``capacity``.
+    """
+
+    def __init__(self, capacity=4096, max_gap_ns=100_000_000, jump_threshold_ns=500_000_000):
+        if int(capacity) < 2:
+            raise ValueError(f'capacity must be >= 2, got {capacity!r}')
+        self.capacity = int(capacity)
+        self.max_gap_ns = int(max_gap_ns)
+        self.jump_threshold_ns = int(jump_threshold_ns)
+        if self.max_gap_ns <= 0 or self.jump_threshold_ns < 0:
+            raise ValueError('max_gap_ns must be positive and jump_threshold_ns non-negative')
+        self._t = np.zeros(2 * self.capacity, np.int64)
+        self._p = np.zeros((2 * self.capacity, 3))
+        self._q = np.zeros((2 * self.capacity, 4))
+        self._start = self._end = 0
+
+    def __len__(self):
+        return self._end - self._start
+
+    @property
+    def first_stamp(self):
+        """Oldest stamp (ns) or None."""
+        return int(self._t[self._start]) if len(self) else None
+
+    @property
+    def last_stamp(self):
+        """Newest stamp (ns) or None."""
+        return int(self._t[self._end - 1]) if len(self) else None
+
+    def clear(self):
+        """Forget every pose."""
+        self._start = self._end = 0
+
+    def add(self, stamp_ns, translation, quat_xyzw):
+        """Add one pose; return a JointStatus (NON_FINITE for a bad translation/quaternion)."""
+        stamp_ns = int(stamp_ns)
+        try:
+            t, q = _check_pose(translation, quat_xyzw)
+        except ValueError:
+            return JointStatus.NON_FINITE
+        status = JointStatus.OK
+        if len(self):
+            last = self.last_stamp
+            if stamp_ns == last:
+                return JointStatus.DUPLICATE
+            if stamp_ns < last:
+                if last - stamp_ns <= self.jump_threshold_ns:
+                    return JointStatus.OUT_OF_ORDER
+                self.clear()
+                status = JointStatus.TIME_JUMP
+        if self._end == len(self._t):
+            keep = self.capacity - 1
+            for a in (self._t, self._p, self._q):
+                a[:keep] = a[self._end - keep:self._end]
+            self._start, self._end = 0, keep
+        self._t[self._end], self._p[self._end], self._q[self._end] = stamp_ns, t, q
+        self._end += 1
+        if self._end - self._start > self.capacity:
+            self._start += 1
+        return status
+
+    def lookup(self, stamps_ns):
+        """Interpolate at several stamps: (statuses (M,) PairStatus, pose vectors (M, 7))."""
+        s = slice(self._start, self._end)
+        return _interpolate(self._t[s], self._p[s], self._q[s], stamps_ns, self.max_gap_ns)
 
 
 @dataclass
@@ -26,7 +192,7 @@ class PoseAt:
 
 
 class PoseTrack:
-    """A time-ordered history of link poses; :meth:`at` interpolates."""
+    """A time-ordered history of link poses (a whole recording); :meth:`at` interpolates."""
 
     def __init__(self, max_gap_s=0.1):
         if not max_gap_s > 0:
@@ -35,36 +201,21 @@ class PoseTrack:
         self._t = []
         self._p = []
         self._q = []
-        self._sorted = True
 
     def __len__(self):
         return len(self._t)
 
     def add(self, stamp_ns, translation, quat_xyzw):
         """Add one pose; non-finite or non-unit quaternions are refused with ValueError."""
-        t = np.asarray(translation, float).reshape(3)
-        q = np.asarray(quat_xyzw, float).reshape(4)
-        n = np.linalg.norm(q)
-        if not (np.all(np.isfinite(t)) and np.isfinite(n) and abs(n - 1.0) < 1e-3):
-            raise ValueError('pose must have a finite translation and a unit quaternion')
-        if self._t and int(stamp_ns) < self._t[-1]:
-            self._sorted = False
-        self._t.append(int(stamp_ns))
-        self._p.append(t)
-        self._q.append(q / n)
-
-    def _sort(self):
-        if not self._sorted:
-            order = np.argsort(self._t, kind='stable')
-            self._t = [self._t[i] for i in order]
-            self._p = [self._p[i] for i in order]
-            self._q = [self._q[i] for i in order]
-            self._sorted = True
+        t, q = _check_pose(translation, quat_xyzw)
+        k = bisect.bisect_right(self._t, int(stamp_ns))
+        self._t.insert(k, int(stamp_ns))
+        self._p.insert(k, t)
+        self._q.insert(k, q)
 
     def at(self, stamp_ns, radius=0.0) -> PoseAt:
         """Return the pose at ``stamp_ns`` ('ok', 'outside' or 'gap' in ``status``)."""
-        self._sort()
-        t = np.asarray(self._t)
+        t = np.asarray(self._t, np.int64)
         if len(t) < 2 or stamp_ns < t[0] or stamp_ns > t[-1]:
             return PoseAt(None, float('nan'), 'outside')
         k = int(np.searchsorted(t, stamp_ns, side='right'))

@@ -1,14 +1,17 @@
 """
-The data a calibration is made from: per-camera observations of one 3D point (a sample).
+The data a calibration is made from: per-camera observations of a target at one pose (a sample).
 
 A sample is one place where the arm dwelt: the nominal 3D position of the target from forward
-kinematics (``point_nominal``, metres, base frame), the joint angles it came from (``q``) or a
-target pose (``pose``, for pose-input data), and per camera the pooled image position(s) of
-the target.  A sphere or a single tag gives one point per camera (K = 1); board targets will
-give K corners with their ids.
+kinematics or a measured link pose (``point_nominal``, metres, base frame), the joint angles it
+came from (``q``) and/or the link pose (``pose``, T_base_link: measured with pose input, from
+forward kinematics for a board), and per camera the pooled image position(s) of the target.  A
+sphere or a single tag gives one point per camera (K = 1, one 3-D point per sample); a board
+(:class:`BoardTarget`) gives K corners with their ids, each corner its own 3-D point
+T_base_link T_link_target p_k.
 """
 
 from dataclasses import dataclass, field
+from typing import Optional
 
 import numpy as np
 
@@ -56,8 +59,12 @@ class Sample:
 
     ``point_nominal`` (3,) the target position from the robot model (metres, base frame);
     ``observations`` camera name -> :class:`Observation`; ``stamp_ns`` a representative time;
-    ``q`` (n,) joint angles in chain order (or None); ``pose`` (4, 4) target pose (or None);
-    ``id`` assigned by the :class:`~armcal_ros.frontend.store.SampleStore` (-1 before).
+    ``q`` (n,) joint angles in chain order (or None); ``pose`` (4, 4) T_base_link, the
+    marker link's pose (or None); ``id`` assigned by the
+    :class:`~armcal_ros.frontend.store.SampleStore` (-1 before).  ``reference_points`` (R, 3)
+    are the base-frame positions of R points fixed on an extended target (a board's outer
+    corners): two poses of a board that differ only by a turn have the same centre but not the
+    same reference points, so the store spaces samples by these (None: by ``point_nominal``).
     """
 
     point_nominal: np.ndarray
@@ -66,6 +73,7 @@ class Sample:
     q: np.ndarray = None
     pose: np.ndarray = None
     id: int = -1
+    reference_points: Optional[np.ndarray] = None
 
     def __post_init__(self):
         self.point_nominal = np.asarray(self.point_nominal, dtype=float).reshape(-1)
@@ -75,14 +83,27 @@ class Sample:
             self.q = np.asarray(self.q, dtype=float).reshape(-1)
         if self.pose is not None:
             self.pose = np.asarray(self.pose, dtype=float)
-            if self.pose.shape != (4, 4):
-                raise ValueError(f'pose must have shape (4, 4), got {self.pose.shape}')
+            if self.pose.shape != (4, 4) or not np.all(np.isfinite(self.pose)):
+                raise ValueError(f'pose must be a finite (4, 4) transform, got shape '
+                                 f'{self.pose.shape}')
+        if self.reference_points is not None:
+            r = np.asarray(self.reference_points, dtype=float)
+            if r.ndim != 2 or r.shape[1] != 3 or not len(r) or not np.all(np.isfinite(r)):
+                raise ValueError(f'reference_points must be finite with shape (R, 3), got '
+                                 f'{r.shape}')
+            self.reference_points = r
         for name, obs in self.observations.items():
             if not isinstance(obs, Observation):
                 raise ValueError(f'observations[{name!r}] must be an Observation, '
                                  f'got {type(obs).__name__}')
         self.stamp_ns = int(self.stamp_ns)
         self.id = int(self.id)
+
+    def key_points(self):
+        """Return the (R, 3) points the store compares samples by (module docstring)."""
+        if self.reference_points is not None:
+            return self.reference_points
+        return self.point_nominal[None, :]
 
     @property
     def n_cameras(self):
@@ -94,3 +115,59 @@ class Sample:
         frames = sum(o.n_frames for o in self.observations.values())
         spread = sum(o.spread_px for o in self.observations.values()) / max(1, self.n_cameras)
         return (self.n_cameras, frames, -spread)
+
+
+@dataclass
+class BoardTarget:
+    """
+    A rigid multi-point target (a ChArUco board) on the marker link.
+
+    ``points`` (P, 3) the board's points in its own (target) frame, row = point id;
+    ``T_link_target`` (4, 4) its pose on the link - the seed when ``estimate_mount`` is set,
+    the fixed mount otherwise; None: unknown (then it must be estimated; the seed comes from
+    hand-eye).
+    """
+
+    points: np.ndarray
+    T_link_target: Optional[np.ndarray] = None
+    estimate_mount: bool = False
+
+    def __post_init__(self):
+        self.points = np.asarray(self.points, dtype=float)
+        if self.points.ndim != 2 or self.points.shape[1] != 3 or len(self.points) < 2 or \
+                not np.all(np.isfinite(self.points)):
+            raise ValueError(f'board points must be finite with shape (P >= 2, 3), got '
+                             f'{self.points.shape}')
+        if self.T_link_target is not None:
+            T = np.asarray(self.T_link_target, dtype=float)
+            if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+                raise ValueError(f'T_link_target must be a finite (4, 4) transform, got '
+                                 f'{T.shape}')
+            self.T_link_target = T
+        elif not self.estimate_mount:
+            raise ValueError('the board\'s pose on the link is unknown: set '
+                             'estimate_marker_offset or target_pose_guess')
+        self.estimate_mount = bool(self.estimate_mount)
+
+    def mount_guess(self):
+        """Return T_link_target, or the identity when it is unknown (seeded by hand-eye)."""
+        return np.eye(4) if self.T_link_target is None else self.T_link_target
+
+    def reference_points_in_link(self):
+        """
+        Return (4, 3): the corners of the board's bounding rectangle in the link frame.
+
+        Under :meth:`mount_guess`.  Any fixed non-collinear set tells two link poses apart;
+        the board's own extent makes "the same place" mean "every corner within the
+        tolerance".
+        """
+        lo, hi = self.points.min(axis=0), self.points.max(axis=0)
+        corners = np.array([[lo[0], lo[1], lo[2]], [hi[0], lo[1], lo[2]],
+                            [hi[0], hi[1], hi[2]], [lo[0], hi[1], hi[2]]])
+        T = self.mount_guess()
+        return corners @ T[:3, :3].T + T[:3, 3]
+
+    def centre_in_link(self):
+        """Return the board's centroid (3,) in the link frame under :meth:`mount_guess`."""
+        T = self.mount_guess()
+        return T[:3, :3] @ self.points.mean(axis=0) + T[:3, 3]

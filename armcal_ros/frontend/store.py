@@ -15,6 +15,11 @@ Policy (memory and solve time are bounded by the workspace, not by the session's
   dropped.  This greedily keeps the stored points spread over the workspace (it maximises
   the smallest spacing) rather than keeping the most recent ones, which would all come from
   wherever the operator happens to be working.
+
+"Distance" between two samples is that of their nominal points; for an extended target (a
+board) it is the largest distance between corresponding reference points
+(:meth:`~armcal_ros.frontend.samples.Sample.key_points`), so two views of a board from the same
+place but turned are different samples.  One store holds one kind of target.
 """
 
 from dataclasses import dataclass
@@ -27,7 +32,9 @@ import numpy as np
 
 from .samples import Observation, Sample
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: Versions :meth:`SampleStore.load` reads (1: point targets only, no reference points).
+READABLE_VERSIONS = (1, 2)
 FILE_NAME = 'samples.npz'
 # Two dwells whose nominal points are closer than this are the same place (robot repeatability
 # is ~0.1 mm; encoder noise is far smaller).
@@ -90,7 +97,7 @@ class SampleStore:
                              f'got {same_point_tolerance}')
         self.joint_names = None if joint_names is None else tuple(joint_names)
         self._samples = []
-        self._points = np.zeros((self.max_samples + 1, 3))
+        self._keys = None             # (max_samples + 1, R, 3), allocated by the first sample
         self._nn_dist = np.zeros(self.max_samples + 1)
         self._nn_idx = np.zeros(self.max_samples + 1, np.intp)
         self._next_id = 0
@@ -122,7 +129,12 @@ class SampleStore:
     def clear(self):
         """Remove every sample (ids keep increasing)."""
         self._samples = []
+        self._keys = None
         self.revision += 1
+
+    def _distances(self, keys, n):
+        """Return the distances (n,) of the first n stored samples from ``keys`` (R, 3)."""
+        return np.linalg.norm(self._keys[:n] - keys, axis=2).max(axis=1)
 
     # -- adding -------------------------------------------------------------------------
 
@@ -132,6 +144,10 @@ class SampleStore:
             raise ValueError(f'sample must be a Sample, got {type(sample).__name__}')
         if not sample.observations:
             raise ValueError('sample has no observations')
+        keys = sample.key_points()
+        if self._keys is not None and keys.shape != self._keys.shape[1:]:
+            raise ValueError(f'sample has {len(keys)} reference points, the stored ones '
+                             f'{self._keys.shape[1]}: one store holds one kind of target')
         result = self._add(sample)
         self.counts[result] += 1
         if result is not AddResult.DROPPED:
@@ -140,9 +156,9 @@ class SampleStore:
 
     def _add(self, sample):
         n = len(self._samples)
-        p = sample.point_nominal
+        keys = sample.key_points()
         if n:
-            d = np.linalg.norm(self._points[:n] - p, axis=1)
+            d = self._distances(keys, n)
             j = int(np.argmin(d))
             dist = float(d[j])
             if dist <= self.same_point_tolerance:
@@ -177,13 +193,15 @@ class SampleStore:
             sample.id = self._next_id
         self._next_id = max(self._next_id, sample.id + 1)
         n = len(self._samples)
-        p = sample.point_nominal
+        keys = sample.key_points()
+        if self._keys is None:
+            self._keys = np.zeros((self.max_samples + 1,) + keys.shape)
         self._samples.append(sample)
-        self._points[n] = p
+        self._keys[n] = keys
         if n == 0:
             self._nn_dist[0], self._nn_idx[0] = np.inf, 0
             return
-        d = np.linalg.norm(self._points[:n] - p, axis=1)
+        d = self._distances(keys, n)
         j = int(np.argmin(d))
         self._nn_dist[n], self._nn_idx[n] = d[j], j
         closer = d < self._nn_dist[:n]
@@ -195,7 +213,7 @@ class SampleStore:
         last = n - 1
         affected = np.flatnonzero(self._nn_idx[:n] == r)
         self._samples[r] = self._samples[last]
-        self._points[r] = self._points[last]
+        self._keys[r] = self._keys[last]
         self._nn_dist[r] = self._nn_dist[last]
         self._nn_idx[r] = self._nn_idx[last]
         self._samples.pop()
@@ -210,7 +228,7 @@ class SampleStore:
     def _nearest(self, a, n):
         if n <= 1:
             return np.inf, a
-        d = np.linalg.norm(self._points[:n] - self._points[a], axis=1)
+        d = self._distances(self._keys[a], n)
         d[a] = np.inf
         j = int(np.argmin(d))
         return d[j], j
@@ -228,8 +246,10 @@ class SampleStore:
 
     def arrays(self, camera_names=None):
         """
-        Return :class:`SolverArrays` in sample-id order.
+        Return :class:`SolverArrays` in sample-id order (point targets: one 3-D point each).
 
+        A board sample's corners are separate 3-D points; the engine builds their problem
+        from the samples' link poses instead.
         ``camera_names`` fixes the camera indexing (observations of other cameras are left
         out); by default every camera seen, in order of first appearance.
         """
@@ -295,6 +315,9 @@ class SampleStore:
             raise ValueError(f'samples have joint vectors of different lengths {sorted(nq)}')
         nq = nq.pop() if nq else 0
         n = len(samples)
+        nr = {len(s.reference_points) for s in samples if s.reference_points is not None}
+        nr = nr.pop() if nr else 0           # one store holds one kind of target (see add)
+        ref = np.full((n, nr, 3), np.nan)
         q = np.full((n, nq), np.nan)
         pose = np.full((n, 4, 4), np.nan)
         obs_rows, uv, ids = [], [], []
@@ -304,6 +327,8 @@ class SampleStore:
                 q[i] = s.q
             if s.pose is not None:
                 pose[i] = s.pose
+            if s.reference_points is not None:
+                ref[i] = s.reference_points
             for name, o in s.observations.items():
                 obs_rows.append((i, cam_index[name], o.n_frames, o.stamp_ns, offset))
                 uv.append(o.uv)
@@ -324,6 +349,9 @@ class SampleStore:
             q=q,
             has_pose=np.array([s.pose is not None for s in samples], dtype=bool),
             pose=pose,
+            has_reference=np.array([s.reference_points is not None for s in samples],
+                                   dtype=bool),
+            reference_points=ref,
             obs=obs, obs_spread=spread.reshape(-1),
             uv=np.concatenate(uv) if uv else np.zeros((0, 2)),
             ids=np.concatenate(ids) if ids else np.zeros(0, np.int64))
@@ -341,9 +369,9 @@ class SampleStore:
         path = os.path.join(directory, FILE_NAME)
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data['meta']))
-            if meta.get('version') != FORMAT_VERSION:
+            if meta.get('version') not in READABLE_VERSIONS:
                 raise ValueError(f'{path}: unsupported sample store version '
-                                 f'{meta.get("version")!r} (expected {FORMAT_VERSION})')
+                                 f'{meta.get("version")!r} (readable: {READABLE_VERSIONS})')
             arrays = {k: data[k] for k in data.files if k != 'meta'}
         saved_joints = meta.get('joint_names')
         if joint_names is not None and saved_joints is not None \
@@ -373,13 +401,17 @@ class SampleStore:
             per_sample.setdefault(i, {})[names[c]] = Observation(
                 uv=arrays['uv'][off:end], ids=arrays['ids'][off:end], n_frames=n_frames,
                 spread_px=float(spread), stamp_ns=stamp)
-        for i in range(arrays['sample_id'].shape[0]):
+        n = arrays['sample_id'].shape[0]
+        has_ref = arrays.get('has_reference', np.zeros(n, bool))
+        for i in range(n):
             sample = Sample(point_nominal=arrays['point'][i],
                             observations=per_sample.get(i, {}),
                             stamp_ns=int(arrays['stamp_ns'][i]),
                             q=arrays['q'][i].copy() if arrays['has_q'][i] else None,
                             pose=arrays['pose'][i].copy() if arrays['has_pose'][i] else None,
-                            id=int(arrays['sample_id'][i]))
+                            id=int(arrays['sample_id'][i]),
+                            reference_points=(arrays['reference_points'][i].copy()
+                                              if has_ref[i] else None))
             if sample.observations:
                 store.add(sample)
         store._next_id = max(store._next_id, int(meta.get('next_id', 0)))
