@@ -22,28 +22,17 @@ import numpy as np
 
 from armcal_ros.core.board_calibration import calibrate_board, CameraSpec, MountSettings
 from armcal_ros.core.target import optional_pose
-from armcal_ros.engine import calibration_from_result
+from armcal_ros.engine import calibration_from_result, target_yaml
 from armcal_ros.frontend.charuco import CharucoBoard, CharucoDetector
 from armcal_ros.io.calib_files import atomic_write_text, write_cameras
 from armcal_ros.io.rct_import import (board_data, detect_views, load_rct_folder, pose_vector,
                                       RctFormatError)
 from armcal_ros.params import charuco_settings, prior_settings, solver_settings
+from armcal_ros.pipeline import pose_from_msg
 
 
 class BoardPipelineError(RuntimeError):
     """A failure the user can act on; the message is the one-line reason."""
-
-
-def _target_yaml(T, std, link, estimated):
-    v = pose_vector(T)
-    lines = [f'# T_{link}_target: pose of the target frame in {link}',
-             f'estimated: {str(bool(estimated)).lower()}',
-             'translation: [' + ', '.join(f'{x:.6f}' for x in v[:3]) + ']',
-             'rotation_xyzw: [' + ', '.join(f'{x:.8f}' for x in v[3:]) + ']']
-    if std is not None:
-        lines.append('std_translation_m: [' + ', '.join(f'{x:.6f}' for x in std[:3]) + ']')
-        lines.append('std_rotation_rad: [' + ', '.join(f'{x:.6f}' for x in std[3:]) + ']')
-    return '\n'.join(lines) + '\n'
 
 
 def calibrate_rct_folder(path, values, output_dir, log: Optional[Callable[[str], None]] = None):
@@ -118,8 +107,8 @@ def solve_board_and_write(specs, bd, values, output_dir, input_info, warnings, t
     atomic_write_text(p, json.dumps(summary, indent=1))
     files.append(p)
     p = os.path.join(output_dir, 'target.yaml')
-    atomic_write_text(p, _target_yaml(res.T_link_target, res.mount_std, values['marker_link'],
-                                      estimate))
+    atomic_write_text(p, target_yaml(res.T_link_target, res.mount_std, values['marker_link'],
+                                     estimate))
     files.append(p)
     report = dict(
         input=input_info, noise_model=values['noise_model'], solved_as=res.model,
@@ -143,14 +132,6 @@ def solve_board_and_write(specs, bd, values, output_dir, input_info, warnings, t
 
 
 POSE_TYPES = ('geometry_msgs/msg/PoseStamped', 'geometry_msgs/msg/TransformStamped')
-
-
-def _pose_of(msgtype, msg):
-    if msgtype == POSE_TYPES[0]:
-        p, o = msg.pose.position, msg.pose.orientation
-    else:
-        p, o = msg.transform.translation, msg.transform.rotation
-    return (p.x, p.y, p.z), (o.x, o.y, o.z, o.w)
 
 
 def calibrate_board_bag(bag, values, output_dir, log: Optional[Callable[[str], None]] = None,
@@ -185,7 +166,7 @@ def calibrate_board_bag(bag, values, output_dir, log: Optional[Callable[[str], N
         try:
             msg = raw.deserialize()
             track.add(int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec),
-                      *_pose_of(topics[pt][0], msg))
+                      *pose_from_msg(msg))
         except DeserializationError:
             counts['corrupt_message'] += 1
         except ValueError:

@@ -15,6 +15,13 @@ converged, and no camera's inlier reprojection RMS may exceed ``max(reject_rms_r
 previous + reject_rms_margin_px)``, nor its inlier fraction drop by more than
 ``reject_inlier_drop``.  A burst of bad detections therefore cannot overwrite a good calibration;
 the rejection is reported with its reason.
+
+Targets: point samples (a sphere, a tag) are solved by
+:func:`~armcal_ros.core.calibration.calibrate` over one 3-D point per sample.  With a board
+(``EngineSettings.board``) every sample is a view - the link pose and the corners each camera
+saw - solved by :func:`~armcal_ros.core.board_calibration.calibrate_board`, which also
+estimates the board's pose on the link (T_link_target) when the board says so.  The estimate
+seeds the next solve and is saved as ``target.yaml`` beside the calibration.
 """
 
 import json
@@ -25,17 +32,47 @@ from dataclasses import dataclass, field, replace
 from typing import Callable, Dict, List, Optional
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
+import yaml
 
 from armcal_ros.core.adjustment import Observations, SolverSettings
+from armcal_ros.core.board_calibration import BoardData, calibrate_board, MountSettings
 from armcal_ros.core.calibration import calibrate, CalibrationResult, CameraSpec
 from armcal_ros.core.camera import Camera, skew
 from armcal_ros.core.kinematic_prior import KinematicData
 from armcal_ros.core.priors import KINEMATIC_MODELS, PriorSettings
+from armcal_ros.core.target import pose_matrix
+from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.frontend.store import SampleStore
 from armcal_ros.io.calib_files import atomic_write_text, read_cameras, write_cameras
 
 CALIBRATION_FILE = 'calibration.json'
+TARGET_FILE = 'target.yaml'
+
+
+def target_yaml(T, std, link, estimated):
+    """Return the text of ``target.yaml``: T_link_target and, when estimated, its std."""
+    t = np.asarray(T, float)
+    q = quaternion_of(t)
+    lines = [f'# T_{link}_target: pose of the target frame in {link}',
+             f'estimated: {str(bool(estimated)).lower()}',
+             'translation: [' + ', '.join(f'{x:.6f}' for x in t[:3, 3]) + ']',
+             'rotation_xyzw: [' + ', '.join(f'{x:.8f}' for x in q) + ']']
+    if std is not None:
+        lines.append('std_translation_m: [' + ', '.join(f'{x:.6f}' for x in std[:3]) + ']')
+        lines.append('std_rotation_rad: [' + ', '.join(f'{x:.6f}' for x in std[3:]) + ']')
+    return '\n'.join(lines) + '\n'
+
+
+def read_target_yaml(path):
+    """Return T_link_target (4, 4) from a ``target.yaml``; ValueError naming the file."""
+    try:
+        with open(path) as f:
+            doc = yaml.safe_load(f)
+        return pose_matrix(doc['translation'], doc['rotation_xyzw'])
+    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f'{path}: cannot read the target pose: {exc}') from exc
 
 
 @dataclass
@@ -52,6 +89,9 @@ class EngineSettings:
     reject_rms_margin_px: float = 0.3
     reject_inlier_drop: float = 0.1
     base_frame: str = 'base_link'
+    #: A board target (None: point samples); ``marker_link`` names its link in target.yaml.
+    board: Optional[BoardTarget] = None
+    marker_link: str = 'tool0'
 
     def validate(self):
         """Raise ValueError naming the first bad setting; return self."""
@@ -67,6 +107,14 @@ class EngineSettings:
             raise ValueError(f'min_new_samples must be >= 0, got {self.min_new_samples}')
         self.prior.validate()
         self.solver.validate()
+        if self.board is not None:
+            if not isinstance(self.board, BoardTarget):
+                raise ValueError(f'board must be a BoardTarget, got {type(self.board).__name__}')
+            if self.prior.model in KINEMATIC_MODELS:
+                raise ValueError(f'noise_model {self.prior.model} is not available with a '
+                                 'board target (the board solver\'s global parameters are its '
+                                 'mount on the link, not the arm\'s kinematic errors); use '
+                                 'fixed, independent, correlated or auto')
         return self
 
 
@@ -192,6 +240,11 @@ class CalibrationEngine:
         self.last_outcome: Optional[SolveOutcome] = None
         self.n_solves = 0
         self.n_rejected = 0
+        # Board targets: the mount in use (the seed, then the latest accepted estimate).
+        board = self.settings.board
+        self.T_link_target: Optional[np.ndarray] = (
+            None if board is None or board.T_link_target is None else board.T_link_target.copy())
+        self.mount_std: Optional[np.ndarray] = None
 
     # -- inputs --------------------------------------------------------------------------
     def set_image_size(self, camera, width, height):
@@ -300,6 +353,8 @@ class CalibrationEngine:
             return self._solve()
 
     def _solve(self) -> SolveOutcome:
+        if self.settings.board is not None:
+            return self._solve_board()
         t0 = time.perf_counter()
         with self._lock:
             self._last_solve_start = self.clock()
@@ -348,7 +403,91 @@ class CalibrationEngine:
         outcome = self._judge(result, n, time.perf_counter() - t0)
         return self._finish(outcome)
 
-    def _judge(self, result, n, elapsed):
+    def _board_problem(self, samples, specs):
+        """Return the BoardData of ``samples`` over the cameras ``specs`` (index = position)."""
+        board = self.settings.board
+        n_points = len(board.points)
+        cam_index = {s.name: j for j, s in enumerate(specs)}
+        view, cam, corner, uv = [], [], [], []
+        for v, smp in enumerate(samples):
+            for name, o in smp.observations.items():
+                c = cam_index.get(name)
+                ok = (o.ids >= 0) & (o.ids < n_points)
+                if c is None or not ok.any():
+                    continue
+                k = int(np.count_nonzero(ok))
+                view.append(np.full(k, v))
+                cam.append(np.full(k, c))
+                corner.append(o.ids[ok])
+                uv.append(o.uv[ok])
+
+        def cat(parts, shape=(0,)):
+            return np.concatenate(parts) if parts else np.zeros(shape)
+        poses = np.array([smp.pose for smp in samples]).reshape(-1, 4, 4)
+        return BoardData(poses, board.points, cat(view), cat(cam), cat(corner), cat(uv, (0, 2)))
+
+    def _solve_board(self) -> SolveOutcome:
+        """One solve of board views (:func:`calibrate_board`), estimating the mount if asked."""
+        t0 = time.perf_counter()
+        board = self.settings.board
+        with self._lock:
+            self._last_solve_start = self.clock()
+            self._revision_at_last_solve = self.store.revision
+            samples = sorted(self.store.samples, key=lambda smp: smp.id)
+            n = len(samples)
+            self._samples_at_last_solve = n
+            initial = ({k: c.camera for k, c in self._current.cameras.items()}
+                       if self._current is not None else None)
+            prior, searching = self._prior_for_solve(n)
+            seed = None if self.T_link_target is None else self.T_link_target.copy()
+            sizes = dict(self.image_sizes)
+
+        def refuse(reason):
+            return self._finish(SolveOutcome(False, reason, None, None, n,
+                                             time.perf_counter() - t0))
+        if prior.model in KINEMATIC_MODELS:
+            return refuse(f'noise_model {prior.model} is not available with a board target; '
+                          'use fixed, independent, correlated or auto')
+        if n == 0:
+            return refuse('no samples')
+        if any(smp.pose is None for smp in samples):
+            return refuse('board samples need the link pose (pose input or joint angles)')
+        names = list(self.settings.camera_names)
+        missing = [c for c in names if c not in sizes]
+        specs = [CameraSpec(c, *sizes[c]) for c in names if c in sizes]
+        if not specs:
+            return refuse(f'image size unknown for {missing}: no image received yet')
+        data = self._board_problem(samples, specs)
+        if not len(data):
+            return refuse('no board corners in the samples')
+        solver = self.settings.solver
+        if not searching and self.settings.prior.model == 'auto' and self._auto_pixel_sigma:
+            solver = replace(solver, pixel_sigma=self._auto_pixel_sigma)
+        try:
+            res = calibrate_board(specs, data, prior, solver, T_link_target=seed,
+                                  mount=MountSettings(estimate=board.estimate_mount),
+                                  initial=initial)
+        except ValueError as exc:
+            return refuse(f'board solve failed: {exc}')
+        result = res.calibration
+        if searching and result.selection is not None:
+            with self._lock:
+                self._auto_choice = result.selection.settings
+                self._auto_samples = n
+                self._auto_pixel_sigma = result.selection.pixel_sigma
+                self.auto_reason = result.selection.reason
+        outcome = self._judge(result, n, time.perf_counter() - t0,
+                              model=None if prior.model == 'auto' else res.model)
+        if outcome.accepted:
+            with self._lock:
+                self.T_link_target = np.array(res.T_link_target, float)
+                self.mount_std = None if res.mount_std is None else np.array(res.mount_std)
+            T = res.T_link_target
+            outcome.calibration.hyperparameters['T_link_target'] = [
+                float(x) for x in np.concatenate([T[:3, 3], quaternion_of(T)])]
+        return self._finish(outcome)
+
+    def _judge(self, result, n, elapsed, model=None):
         if result.adjustment is None or not result.success:
             return SolveOutcome(False, f'solve failed: {result.message}', result, None, n, elapsed)
         used = (result.selection.settings if result.selection is not None
@@ -362,6 +501,8 @@ class CalibrationEngine:
         if self.settings.prior.model == 'auto':
             hyper['auto_reason'] = self.auto_reason
         new = calibration_from_result(result, n, hyper)
+        if model:
+            new.model = model      # e.g. 'correlated+mount': the board solver's own name
         with self._lock:
             old = self._current
         if old is not None:
@@ -437,6 +578,14 @@ class CalibrationEngine:
             path = os.path.join(directory, CALIBRATION_FILE)
             atomic_write_text(path, json.dumps(cal.summary(), indent=1))
             written.append(path)
+        board = self.settings.board
+        with self._lock:
+            T, std = self.T_link_target, self.mount_std
+        if board is not None and T is not None and cal is not None:
+            path = os.path.join(directory, TARGET_FILE)
+            atomic_write_text(path, target_yaml(T, std, self.settings.marker_link,
+                                                board.estimate_mount))
+            written.append(path)
         return [str(w) for w in written if w]
 
     def load(self, directory):
@@ -469,7 +618,19 @@ class CalibrationEngine:
                     self._samples_at_last_solve = len(self.store)
             said.append(f'calibration of {sorted(cal.cameras)} ({cal.model}, '
                         f'{cal.n_samples} samples)')
+        target_file = os.path.join(directory, TARGET_FILE)
+        board = self.settings.board
+        if board is not None and board.estimate_mount and os.path.exists(target_file):
+            T = read_target_yaml(target_file)
+            with self._lock:
+                self.T_link_target = T
+            said.append('the board\'s mount')
         return 'restored ' + ' and '.join(said) if said else 'nothing to restore'
+
+
+def quaternion_of(T):
+    """Return the quaternion (x, y, z, w) of a transform's rotation."""
+    return Rotation.from_matrix(np.asarray(T, float)[:3, :3]).as_quat()
 
 
 def load_calibration(directory) -> Calibration:

@@ -3,9 +3,11 @@
 
 Messages are read with rosbags (mcap or sqlite3), fed in bag order to the same
 :class:`~armcal_ros.pipeline.SampleCollector` and :class:`~armcal_ros.engine.CalibrationEngine`
-the node uses, and the calibration is solved once at the end.  A camera topic that is missing or
-empty is reported and the other cameras are still calibrated; a message that cannot be
-deserialised is counted and skipped.
+the node uses, and the calibration is solved once at the end.  The arm's position comes from
+``joint_states_topic`` and the robot model, or with pose input (``pose_topic`` set) from the
+marker link's measured pose (PoseStamped or TransformStamped; no robot model needed).  A camera
+topic that is missing or empty is reported and the other cameras are still calibrated; a message
+that cannot be deserialised is counted and skipped.
 """
 
 import json
@@ -18,16 +20,19 @@ from typing import Callable, Dict, List, Optional
 import numpy as np
 
 from armcal_ros.core.kinematic_prior import KinematicData
-from armcal_ros.engine import CalibrationEngine, EngineSettings, SolveOutcome
+from armcal_ros.engine import (CalibrationEngine, EngineSettings, quaternion_of,
+                               SolveOutcome)
 from armcal_ros.frontend.store import SampleStore
 from armcal_ros.io.bag import bag_topics, DeserializationError, iter_raw
 from armcal_ros.io.calib_files import atomic_write_text
-from armcal_ros.params import (check_value, load_params_file, prior_settings, solver_settings,
-                               urdf_text)
-from armcal_ros.pipeline import make_detectors, SampleCollector
+from armcal_ros.params import (check_all, check_value, load_params_file, prior_settings,
+                               solver_settings, urdf_text)
+from armcal_ros.pipeline import (board_target, make_board, make_detectors, pose_from_msg,
+                                 SampleCollector)
 from armcal_ros.robot.kinematics import KinematicChain
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
+POSE_TYPES = ('geometry_msgs/msg/PoseStamped', 'geometry_msgs/msg/TransformStamped')
 IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
 
 
@@ -50,30 +55,60 @@ def stamp_ns(header_stamp):
     return int(header_stamp.sec) * 1_000_000_000 + int(header_stamp.nanosec)
 
 
-def build_collector(values, log=None):
-    """Robot chain, detectors and collector from parameter values."""
+def _board(values):
+    """Return (CharucoBoard, BoardTarget) for a charuco marker_type, else (None, None)."""
+    if values['marker_type'] != 'charuco':
+        return None, None
     try:
-        chain = KinematicChain.from_urdf(urdf_text(values), values['base_frame'],
-                                         values['marker_link'])
+        board = make_board(values)
+        return board, board_target(values, board)
     except ValueError as exc:
-        raise CalibrateError(f'robot model: {exc}') from exc
-    detectors = make_detectors(values, values['camera_names'])
+        raise CalibrateError(str(exc)) from exc
+
+
+def build_collector(values, log=None):
+    """
+    Robot chain, detectors and collector from parameter values.
+
+    With pose input (``pose_topic``) no robot model is read and the chain is None.
+    """
+    chain = None
+    if not values['pose_topic']:
+        try:
+            chain = KinematicChain.from_urdf(urdf_text(values), values['base_frame'],
+                                             values['marker_link'])
+        except ValueError as exc:
+            raise CalibrateError(f'robot model: {exc}') from exc
+    board, target = _board(values)
+    detectors = make_detectors(values, values['camera_names'], board)
     return chain, SampleCollector(chain, values['marker_offset'], values['camera_names'],
                                   detectors, values['max_marker_speed'], values['dwell_radius'],
-                                  log=log)
+                                  log=log, board=target)
 
 
 def build_engine(values, chain):
-    """Engine and its sample store from parameter values."""
+    """
+    Engine and its sample store from parameter values.
+
+    ``chain`` (None with pose input) gives the kinematic models their Jacobian; a board
+    target has no use for it (those models are refused with a board).
+    """
     store = SampleStore(max_samples=values['max_samples'],
                         min_sample_spacing=values['min_sample_spacing'],
                         same_point_tolerance=min(0.0005, values['min_sample_spacing']),
-                        joint_names=chain.joint_names)
-    settings = EngineSettings(list(values['camera_names']), prior_settings(values),
-                              solver_settings(values), min_samples=values['min_samples'],
-                              solve_period_s=values['solve_period'],
-                              min_new_samples=values['min_new_samples'],
-                              base_frame=values['base_frame'])
+                        joint_names=None if chain is None else chain.joint_names)
+    _, target = _board(values)
+    try:
+        settings = EngineSettings(list(values['camera_names']), prior_settings(values),
+                                  solver_settings(values), min_samples=values['min_samples'],
+                                  solve_period_s=values['solve_period'],
+                                  min_new_samples=values['min_new_samples'],
+                                  base_frame=values['base_frame'], board=target,
+                                  marker_link=values['marker_link'])
+    except ValueError as exc:
+        raise CalibrateError(str(exc)) from exc
+    if chain is None or target is not None:
+        return CalibrationEngine(settings, store)
     offset = np.asarray(values['marker_offset'], float)
 
     def kinematics(Q):
@@ -85,7 +120,7 @@ def build_engine(values, chain):
 class FrontEnd:
     """The samples a bag gave, with everything needed to solve and report on them."""
 
-    chain: KinematicChain
+    chain: Optional[KinematicChain]       # None with pose input
     store: SampleStore
     image_sizes: Dict[str, tuple]
     counts: Dict[str, int]
@@ -104,12 +139,17 @@ def collect_samples(bag, values, progress: Callable[[int, int], None] = None,
     except Exception as exc:
         raise CalibrateError(f'cannot open bag {bag}: {exc}') from exc
     warnings = []
-    jt = values['joint_states_topic']
+    pose_input = bool(values['pose_topic'])
+    if pose_input:
+        jt, kind, types = values['pose_topic'], 'pose_topic', POSE_TYPES
+    else:
+        jt, kind, types = values['joint_states_topic'], 'joint_states_topic', (JOINT_STATE,)
     if jt not in topics or topics[jt][1] == 0:
-        raise CalibrateError(f'bag {bag} has no messages on joint_states_topic {jt} '
+        raise CalibrateError(f'bag {bag} has no messages on {kind} {jt} '
                              f'(topics: {sorted(topics)})')
-    if topics[jt][0] != JOINT_STATE:
-        raise CalibrateError(f'{jt} carries {topics[jt][0]}, not {JOINT_STATE}')
+    if topics[jt][0] not in types:
+        raise CalibrateError(f'{kind} {jt} carries {topics[jt][0]}, not '
+                             f'{" or ".join(types)}')
     cam_of_topic = {}
     for cam, topic in zip(values['camera_names'], values['image_topics']):
         if topic not in topics or topics[topic][1] == 0:
@@ -137,7 +177,9 @@ def collect_samples(bag, values, progress: Callable[[int, int], None] = None,
             progress(n, total)
         try:
             msg = raw.deserialize()
-            if raw.topic == jt:
+            if raw.topic == jt and pose_input:
+                samples = collector.add_pose(stamp_ns(msg.header.stamp), *pose_from_msg(msg))
+            elif raw.topic == jt:
                 samples = collector.add_joint_state(stamp_ns(msg.header.stamp), msg.name,
                                                     msg.position)
             else:
@@ -201,7 +243,19 @@ def make_report(values, engine, outcome, front, timings):
                 cams[name] = dict(status='not calibrated',
                                   message=(r.message if r is not None else
                                            'no usable images'))
+    target = None
+    if engine.settings.board is not None:
+        T = engine.T_link_target
+        target = dict(
+            T_link_target=(None if T is None else
+                           [float(x) for x in np.concatenate([T[:3, 3], quaternion_of(T)])]),
+            estimated=bool(engine.settings.board.estimate_mount),
+            std=(None if engine.mount_std is None else [float(x) for x in engine.mount_std]))
     return dict(
+        input=dict(arm=('pose_topic ' + values['pose_topic'] if values['pose_topic'] else
+                        'joint_states_topic ' + values['joint_states_topic']),
+                   marker_type=values['marker_type']),
+        target=target,
         noise_model=values['noise_model'],
         hyperparameters=dict(pixel_sigma=values['pixel_sigma'],
                              point_sigma=values['point_sigma'],
@@ -263,6 +317,7 @@ def run(args):
         values = load_params_file(args.params, require_robot_model=not rct)
         if args.noise_model is not None:
             values['noise_model'] = check_value('noise_model', args.noise_model)
+            check_all(values, require_robot_model=not rct)
     except ValueError as exc:
         raise CalibrateError(str(exc)) from exc
 
@@ -288,13 +343,9 @@ def run(args):
               (' (estimated)' if tgt['estimated'] else ' (given)'))
         print(f'wrote {", ".join(os.path.basename(f) for f in files)} to {args.output}')
         return 0
-    if values['marker_type'] == 'charuco' and not values['pose_topic']:
-        raise CalibrateError('marker_type charuco needs pose input (set pose_topic) or a '
-                             'robot_cal_tools folder; with joint states use sphere or aruco')
-    if values['pose_topic']:
-        if values['marker_type'] != 'charuco':
-            raise CalibrateError('pose input (pose_topic) is implemented for charuco targets; '
-                                 f'marker_type is {values["marker_type"]}')
+    if values['pose_topic'] and values['marker_type'] == 'charuco':
+        # A board with pose input: every still frame is a view of its own (views from
+        # robot_cal_tools-style recordings are single frames), solved by the board pipeline.
         from armcal_ros.board_pipeline import BoardPipelineError, calibrate_board_bag
         try:
             report, files, _ = calibrate_board_bag(args.bag, values, args.output, log)

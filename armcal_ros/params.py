@@ -19,11 +19,12 @@ import yaml
 
 from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.camera import DISTORTION_NAMES
-from armcal_ros.core.priors import KERNELS, NOISE_MODELS, PriorSettings
+from armcal_ros.core.priors import KERNELS, KINEMATIC_MODELS, NOISE_MODELS, PriorSettings
 from armcal_ros.core.robust import LOSSES
 
 NAME_RE = re.compile(r'^[A-Za-z0-9_]+$')
 MARKER_TYPES = ('sphere', 'aruco', 'charuco')
+POSE_TYPES = ('pose_stamped', 'transform_stamped')
 NODE_NAME = 'armcal'
 
 
@@ -184,6 +185,10 @@ PARAMS = [
     Param('pose_topic', 'string', '',
           'geometry_msgs PoseStamped or TransformStamped topic with marker_link\'s pose in '
           'base_frame; when set it replaces joint states and the robot model (pose input)'),
+    Param('pose_type', 'string', 'pose_stamped',
+          'message type on pose_topic for the node: pose_stamped (geometry_msgs/PoseStamped) '
+          'or transform_stamped (geometry_msgs/TransformStamped); a bag says its own type',
+          _one_of(POSE_TYPES)),
 ]
 BY_NAME = {p.name: p for p in PARAMS}
 
@@ -251,6 +256,17 @@ def check_all(values: Dict[str, Any], require_robot_model=True):
                          f'per camera ({len(cams)}), got {len(svc)}')
     if values['sphere_min_radius_px'] >= values['sphere_max_radius_px']:
         raise ValueError('parameters sphere_min_radius_px must be < sphere_max_radius_px')
+    model = values['noise_model']
+    if model in KINEMATIC_MODELS and values['pose_topic']:
+        raise ValueError(f'parameters noise_model and pose_topic: noise_model {model} needs '
+                         'joint angles (the robot model\'s error Jacobian at each sample), '
+                         'which pose input does not have; use fixed, independent, correlated '
+                         'or auto')
+    if model in KINEMATIC_MODELS and values['marker_type'] == 'charuco':
+        raise ValueError(f'parameters noise_model and marker_type: noise_model {model} is not '
+                         'available with a charuco board (the board solver\'s global '
+                         'parameters are the board\'s mount on the link, not the arm\'s '
+                         'kinematic errors); use fixed, independent, correlated or auto')
     if require_robot_model and not values['pose_topic'] and \
             not values['robot_description'] and not values['robot_description_file']:
         raise ValueError('parameters robot_description or robot_description_file: one must be '

@@ -106,13 +106,17 @@ def test_pose_input_needs_a_board_and_the_topic(bag, tmp_path):
                                noise_model=None, quiet=True))
 
 
-def test_charuco_with_joint_states_is_refused_with_the_reason(bag, tmp_path):
-    p = params(tmp_path / 'p.yaml', robot_description='<robot name="x"/>')
-    with pytest.raises(CalibrateError, match='needs pose input'):
+def test_charuco_with_joint_states_takes_the_joint_front_end(bag, tmp_path):
+    # No longer refused (issue 7): a board with joint input is collected from joint states,
+    # so a bag without them says so; the board's size must be given.
+    p = params(tmp_path / 'p.yaml', robot_description='<robot name="x"/>',
+               charuco_rows=7, charuco_cols=5, charuco_square_size=0.04,
+               charuco_marker_size=0.02)
+    with pytest.raises(CalibrateError, match='joint_states_topic'):
         run(argparse.Namespace(bag=bag, params=p, output=str(tmp_path / 'o'),
                                noise_model=None, quiet=True))
     from armcal_ros.params import defaults
     from armcal_ros.pipeline import make_detectors
     values = dict(defaults(), marker_type='charuco')
-    with pytest.raises(ValueError, match='marker_type'):
+    with pytest.raises(ValueError, match='charuco_rows'):
         make_detectors(values, ['cam'])

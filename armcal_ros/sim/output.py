@@ -3,7 +3,10 @@ Write a simulated cell (:class:`~armcal_ros.sim.cell.SimResult`) to a rosbag2 ba
 
 Topics: ``/joint_states`` (sensor_msgs/JointState) and, per camera, ``/<cam>/image_raw``
 (sensor_msgs/Image) or ``/<cam>/image_raw/compressed`` (sensor_msgs/CompressedImage, png or
-jpeg), frame_id ``<cam>_optical_frame``; messages in bag-time (receive) order.
+jpeg), frame_id ``<cam>_optical_frame``; messages in bag-time (receive) order.  Optionally a
+pose topic (geometry_msgs/PoseStamped or TransformStamped, frame ``base_frame``) with the marker
+link's pose at every joint state, as a robot controller reports it: forward kinematics of the
+nominal model at the joint readings (so it carries the same bias as the joint states).
 
 Ground truth goes to ``<bag>/ground_truth/`` (inside the bag directory, beside the storage
 file, so it travels with the bag; rosbag2 readers ignore it):
@@ -26,8 +29,13 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from scipy.spatial.transform import Rotation
+
 from armcal_ros.io.bag import BagWriter, COMPRESSED_FORMATS, IMAGE_ENCODINGS
 from armcal_ros.io.calib_files import atomic_write_text, write_cameras
+
+POSE_MSG_TYPES = {'pose_stamped': 'geometry_msgs/msg/PoseStamped',
+                  'transform_stamped': 'geometry_msgs/msg/TransformStamped'}
 
 
 def image_topic(camera_name, compressed=None):
@@ -73,15 +81,41 @@ def write_ground_truth(result, directory, topics=None):
     atomic_write_text(directory / 'scenario.yaml', yaml.safe_dump(doc, sort_keys=False))
 
 
+def link_poses(result):
+    """Return the marker link's nominal pose (N, 4, 4) at every joint state of ``result``."""
+    chain = result.chain
+    q = np.asarray(result.joint_positions)[:, chain.index_map(result.joint_names)]
+    return chain.fk_pose(q)
+
+
+def _pose_message(types, msgtype, header, T, child_frame):
+    t = T[:3, 3]
+    q = Rotation.from_matrix(T[:3, :3]).as_quat()
+    quat = types['geometry_msgs/msg/Quaternion'](x=q[0], y=q[1], z=q[2], w=q[3])
+    if msgtype == POSE_MSG_TYPES['pose_stamped']:
+        return types[msgtype](header=header, pose=types['geometry_msgs/msg/Pose'](
+            position=types['geometry_msgs/msg/Point'](x=t[0], y=t[1], z=t[2]),
+            orientation=quat))
+    return types[msgtype](header=header, child_frame_id=child_frame,
+                          transform=types['geometry_msgs/msg/Transform'](
+                              translation=types['geometry_msgs/msg/Vector3'](
+                                  x=t[0], y=t[1], z=t[2]), rotation=quat))
+
+
 def write_sim_bag(result, path, storage='mcap', compressed=None, encoding='mono8',
-                  compress=True, ground_truth=True, jpeg_quality=90, progress=None):
+                  compress=True, ground_truth=True, jpeg_quality=90, progress=None,
+                  pose_topic=None, pose_type='pose_stamped'):
     """
     Write ``result`` to the rosbag2 bag directory ``path`` (must not exist).
 
     ``compressed`` is None (raw sensor_msgs/Image), ``'png'`` or ``'jpeg'``; ``encoding`` is
     mono8, rgb8 or bgr8; ``compress`` turns on zstd chunk compression (mcap only).
+    ``pose_topic`` (e.g. ``/tool_pose``) adds the marker link's pose at every joint state as
+    ``pose_type`` ``'pose_stamped'`` or ``'transform_stamped'`` (module docstring).
     ``progress(i, n)`` is called now and then.  Returns {topic: message count}.
     """
+    if pose_type not in POSE_MSG_TYPES:
+        raise ValueError(f'pose_type must be one of {sorted(POSE_MSG_TYPES)}, got {pose_type!r}')
     if compressed is not None and compressed not in COMPRESSED_FORMATS:
         raise ValueError(f'compressed must be None or one of {COMPRESSED_FORMATS}, '
                          f'got {compressed!r}')
@@ -92,20 +126,32 @@ def write_sim_bag(result, path, storage='mcap', compressed=None, encoding='mono8
     cam_topics = [image_topic(c.name, compressed) for c in result.cameras]
     frames = result.frames
     js_log = result.joint_stamps_ns + 500_000      # 0.5 ms from the controller to the bag
-    # merge the two streams in receive order
-    events = np.concatenate([np.zeros(len(js_log), np.int64), np.ones(len(frames), np.int64)])
-    index = np.concatenate([np.arange(len(js_log)), np.arange(len(frames))])
-    times = np.concatenate([js_log, frames.log_ns])
+    # merge the streams in receive order (events: 0 joint state, 1 image, 2 pose)
+    n_pose = len(js_log) if pose_topic else 0
+    events = np.concatenate([np.zeros(len(js_log), np.int64), np.ones(len(frames), np.int64),
+                             np.full(n_pose, 2, np.int64)])
+    index = np.concatenate([np.arange(len(js_log)), np.arange(len(frames)), np.arange(n_pose)])
+    times = np.concatenate([js_log, frames.log_ns, js_log[:n_pose]])
     order = np.lexsort((events, times))
     total = len(order)
+    poses = link_poses(result) if pose_topic else None
+    pose_msgtype = POSE_MSG_TYPES[pose_type]
+    base, link = result.settings.base_frame, result.settings.marker_link
     with BagWriter(path, storage=storage, compress=compress) as w:
         w.connection(js_topic, 'sensor_msgs/msg/JointState')
         for t in cam_topics:
             w.connection(t, 'sensor_msgs/msg/CompressedImage' if compressed
                          else 'sensor_msgs/msg/Image')
+        if pose_topic:
+            w.connection(pose_topic, pose_msgtype)
         for k, o in enumerate(order):
             i = int(index[o])
-            if events[o] == 0:
+            if events[o] == 2:
+                header = w.header(int(result.joint_stamps_ns[i]), base)
+                w.write_message(pose_topic, pose_msgtype, int(js_log[i]),
+                                _pose_message(w.typestore.types, pose_msgtype, header,
+                                              poses[i], link))
+            elif events[o] == 0:
                 w.write_joint_state(js_topic, int(result.joint_stamps_ns[i]), result.joint_names,
                                     result.joint_positions[i], result.joint_velocities[i],
                                     log_ns=int(js_log[i]))
@@ -128,6 +174,8 @@ def write_sim_bag(result, path, storage='mcap', compressed=None, encoding='mono8
     if ground_truth:
         topics = {'joint_states': js_topic,
                   'images': {c.name: t for c, t in zip(result.cameras, cam_topics)}}
+        if pose_topic:
+            topics['pose'] = {'topic': pose_topic, 'type': pose_msgtype}
         write_ground_truth(result, path / 'ground_truth', topics)
     return counts
 
