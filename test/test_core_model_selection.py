@@ -4,7 +4,11 @@ import pytest
 
 from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.calibration import calibrate
-from armcal_ros.core.model_selection import estimate_pixel_sigma, select_model
+from armcal_ros.core.model_selection import (_search_scale, Candidate, DEFAULT_GRID,
+                                             estimate_pixel_sigma,
+                                             OCCAM_MARGIN, SCALE_EXTENSIONS, SCALE_REFINEMENTS,
+                                             SCALE_TOLERANCE,
+                                             select_model)
 from armcal_ros.core.priors import PriorSettings
 from armcal_ros.sim.robot_points import make_robot_problem
 from armcal_ros.sim.synthetic import make_problem
@@ -84,3 +88,60 @@ def test_auto_uses_the_estimated_image_noise_not_the_configured_one():
                         holdout=False, estimate_noise=False,
                         grid={'coherence_length': (0.3,), 'bias_sigma': (1e-3,)})
     assert kept.pixel_sigma == 2.0 and kept.noise is None
+
+
+def _fake(evidence):
+    """Return a Candidate factory for the 1-D search: log evidence as a function of scale."""
+    calls = []
+
+    def evaluate(k, ps):
+        calls.append(k)
+        return Candidate(PriorSettings('kinematic', kinematic_scale=k, point_sigma=ps),
+                         evidence(k), 0.0, True)
+    return evaluate, calls
+
+
+@pytest.mark.parametrize('true_scale', [0.7, 1.3, 5.0, 0.2])
+def test_scale_search_brackets_and_refines_the_evidence_maximum(true_scale):
+    evaluate, calls = _fake(lambda k: -40.0 * (np.log(k) - np.log(true_scale)) ** 2)
+    best = _search_scale(evaluate, (0.5, 1.0, 2.0), 1e-5)
+    assert best.settings.point_sigma == 1e-5
+    # a parabola in log scale: found to within the search tolerance
+    assert abs(np.log(best.settings.kinematic_scale / true_scale)) < np.log1p(SCALE_TOLERANCE)
+    assert len(calls) <= 3 + SCALE_EXTENSIONS + SCALE_REFINEMENTS
+
+
+def test_scale_search_survives_failed_candidates():
+    evaluate, calls = _fake(lambda k: -np.inf if k > 1.5 else -(k - 1.0) ** 2)
+    best = _search_scale(evaluate, (0.5, 1.0, 2.0), 1e-5)
+    assert 0.5 <= best.settings.kinematic_scale <= 1.5
+
+
+@pytest.mark.slow
+def test_hybrid_search_contains_both_limits_and_kinematic_point_sigma_is_searched():
+    prob = make_robot_problem('geometric', 300, 2, n_test=20)
+    s = SolverSettings(pixel_sigma=0.3)
+    cams, inl = _fixed(prob, s)
+    sel = select_model(cams, prob.measured, prob.obs, PriorSettings(), s, prob.kinematics, inl,
+                       holdout=False, grid={'coherence_length': (0.3,), 'bias_sigma': (1e-3,),
+                                            'hybrid_bias_sigma': (0.3e-3,)})
+    kin, corr, hyb = (sel.best_of(m) for m in ('kinematic', 'correlated', 'hybrid'))
+    # the limits are candidates, so hybrid's evidence is never below either simpler model
+    assert hyb.log_evidence >= max(kin.log_evidence, corr.log_evidence)
+    limits = [c for c in sel.candidates if c.settings.model == 'hybrid' and
+              c.settings.bias_sigma == 0]
+    assert limits and limits[0].log_evidence == kin.log_evidence
+    # s_n is searched over its grid at the best scale; with pure linkage errors (nothing
+    # left for s_n) a small one is never clearly worse than the 0.2 mm default
+    at_best = {c.settings.point_sigma: c.log_evidence for c in sel.candidates
+               if c.settings.model == 'kinematic' and
+               c.settings.kinematic_scale == kin.settings.kinematic_scale}
+    assert set(DEFAULT_GRID['kinematic_point_sigma']) <= set(at_best)
+    assert at_best[min(at_best)] > at_best[0.2e-3] - 1.0
+    scales = {c.settings.kinematic_scale for c in sel.candidates
+              if c.settings.model == 'kinematic'}
+    assert len(scales) > 3                  # refined beyond the grid
+    choice = sel.choice_of('hybrid')
+    assert choice.settings.bias_sigma == 0 or choice.settings.kinematic_scale == 0 or \
+        choice.log_evidence > max(kin.log_evidence, corr.log_evidence) + OCCAM_MARGIN
+    assert sel.settings.model in ('kinematic', 'hybrid')

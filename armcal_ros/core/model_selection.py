@@ -13,10 +13,17 @@ A more complex model must beat a simpler one by ``OCCAM_MARGIN`` (3 in natural l
 in the accuracy benchmark, hybrid's gain over kinematic on pure linkage errors stayed within
 +-3 while its cameras were a few per cent worse.
 
-The grid is searched one coordinate at a time (coherence length, then bias sigma, for the field;
-the common multiplier of the kinematic sigmas; for ``hybrid`` the field at the best kinematic
-multiplier, then the best correlated field with the kinematic part off, then the multiplier
-again from the better start), about twenty adjustments in all.
+The hyperparameters are searched one coordinate at a time, about twenty-five adjustments in
+all.  Field: coherence length, then bias sigma, on the grid.  Kinematic: the common multiplier
+of the kinematic sigmas by an evidence-maximising 1-D search (the grid, extended until the
+maximum is bracketed, then parabolic refinement in log scale: the evidence is smooth in it),
+then the per-point sigma s_n on its grid, then the multiplier once more at that s_n.
+``hybrid``: its kinematic part starts at the kinematic model's optimum (multiplier and s_n);
+the field is searched on top, and two limits are candidates too: the field switched off
+(sigma -> 0, the best kinematic model itself) and the kinematic part switched off (the best
+correlated model); from the best of these the multiplier is searched once more.  Both limits
+are exactly those models (the same prior, hence the same solve and evidence), so hybrid's best
+evidence is never below either.
 
 Check: held-out reprojection.  For the best candidate of each model, a fifth of the points is
 held out, the model is fitted on the rest, the held-out points are predicted from the robot's
@@ -69,12 +76,23 @@ CANDIDATE_MAX_ITERATIONS = 30
 CANDIDATE_FTOL = 1e-6
 
 #: Hyperparameter grid of ``auto`` (metres; the kinematic scale multiplies the default sigmas).
+#: ``kinematic_point_sigma`` is the per-point term s_n of the kinematic models: what the
+#: kinematic parameters leave (linearisation, non-geometric errors), typically far below the
+#: 0.2 mm default that suits the field models.
 DEFAULT_GRID = {
     'coherence_length': (0.15, 0.3, 0.6),
     'bias_sigma': (0.3e-3, 1e-3, 3e-3),
     'hybrid_bias_sigma': (0.1e-3, 0.3e-3, 1e-3),
     'kinematic_scale': (0.5, 1.0, 2.0),
+    'kinematic_point_sigma': (0.02e-3, 0.05e-3, 0.2e-3),
 }
+#: The 1-D search of the kinematic scale: the grid is extended by factors of two until the best
+#: value is bracketed (at most this many times each way), then refined by successive parabolic
+#: interpolation of the log evidence in log scale until the step is below ``SCALE_TOLERANCE``
+#: (relative) or ``SCALE_REFINEMENTS`` evaluations are spent.
+SCALE_EXTENSIONS = 2
+SCALE_REFINEMENTS = 3
+SCALE_TOLERANCE = 0.05
 
 
 @dataclass
@@ -96,7 +114,7 @@ class Candidate:
         if s.model in ('correlated', 'hybrid'):
             parts.append(f's_b={s.bias_sigma * 1e3:.2g}mm L={s.coherence_length:.2g}m')
         if s.model in KINEMATIC_MODELS:
-            parts.append(f'kin_scale={s.kinematic_scale:g}')
+            parts.append(f'kin_scale={s.kinematic_scale:.3g} s_n={s.point_sigma * 1e3:.2g}mm')
         return ' '.join(parts)
 
     def as_dict(self):
@@ -125,6 +143,18 @@ class ModelSelection:
         """Return the best (highest-evidence) candidate of ``model``, or None."""
         c = [x for x in self.candidates if x.settings.model == model and x.success]
         return max(c, key=lambda x: x.log_evidence) if c else None
+
+    def choice_of(self, model, occam_margin: float = OCCAM_MARGIN):
+        """
+        Return the candidate of ``model`` that ``auto`` would choose were it the only model.
+
+        The Occam rule of :func:`select_model` applied within the model: among its candidates
+        within ``occam_margin`` of its best evidence, the simplest (a hybrid with its field or
+        its kinematic part switched off counts as that simpler model) with the best evidence.
+        None when ``model`` has no successful candidate.
+        """
+        c = [x for x in self.candidates if x.settings.model == model and x.success]
+        return _occam_choice(c, occam_margin) if c else None
 
 
 @dataclass
@@ -214,24 +244,29 @@ def select_model(cameras, measured, obs: Observations, base: PriorSettings = Non
     last_kin = {}
 
     def key_of(ps):
-        field_part = (ps.bias_sigma, ps.coherence_length) if ps.model in (
+        # The prior a candidate solves: hybrid with one part switched off is that model.
+        model = ps.model
+        if model == 'hybrid' and ps.kinematic_scale == 0:
+            model = 'correlated'
+        elif model == 'hybrid' and ps.bias_sigma == 0:
+            model = 'kinematic'
+        field_part = (ps.bias_sigma, ps.coherence_length) if model in (
             'correlated', 'hybrid') else None
-        kin = ps.kinematic_scale if ps.model in KINEMATIC_MODELS else None
-        return (ps.model, field_part, kin)
+        kin = ps.kinematic_scale if model in KINEMATIC_MODELS else None
+        return (model, field_part, kin, ps.point_sigma if model != 'fixed' else None)
 
     def run(**kw):
         ps = replace(base, **kw)
         key = key_of(ps)
-        if key in seen:
-            return seen[key]
-        twin = seen.get(key_of(replace(ps, model='correlated')))
-        if ps.model == 'hybrid' and ps.kinematic_scale == 0 and twin is not None and \
-                'correlated' in allowed:
-            # Hybrid with the kinematic part off is that correlated model: reuse its solve.
+        if (ps.model, key) in seen:
+            return seen[ps.model, key]
+        twin = seen.get((key[0], key))
+        if twin is not None and ps.model == 'hybrid':
+            # Hybrid with one part switched off is that simpler model: reuse its solve.
             c = Candidate(ps, twin.log_evidence, 0.0, twin.success, result=twin.result,
                           cameras=twin.cameras)
             cands.append(c)
-            seen[key] = c
+            seen[ps.model, key] = c
             return c
         t = time.perf_counter()
         g0 = None
@@ -247,7 +282,7 @@ def select_model(cameras, measured, obs: Observations, base: PriorSettings = Non
         c = Candidate(ps, res.log_evidence if ok else -np.inf, time.perf_counter() - t, ok,
                       result=res, cameras=res.camera_list())
         cands.append(c)
-        seen[key] = c
+        seen[ps.model, key] = c
         if ps.model == 'kinematic' and ok and res.global_parameters is not None:
             last_kin['c'] = c
         return c
@@ -258,10 +293,17 @@ def select_model(cameras, measured, obs: Observations, base: PriorSettings = Non
     for m in ('fixed', 'independent'):
         if m in allowed:
             run(model=m)
-    kin_scale = 1.0
+    kin = None
     if 'kinematic' in allowed or 'hybrid' in allowed:
-        kin_scale = best([run(model='kinematic', kinematic_scale=k)
-                          for k in grid['kinematic_scale']]).settings.kinematic_scale
+        kin = _search_scale(lambda k, ps: run(model='kinematic', kinematic_scale=k,
+                                              point_sigma=ps),
+                            grid['kinematic_scale'], base.point_sigma)
+        kin = best([kin] + [run(model='kinematic', kinematic_scale=kin.settings.kinematic_scale,
+                                point_sigma=ps) for ps in grid['kinematic_point_sigma']])
+        k = kin.settings.kinematic_scale
+        kin = _search_scale(lambda k, ps: run(model='kinematic', kinematic_scale=k,
+                                              point_sigma=ps),
+                            (0.5 * k, k, 2.0 * k), kin.settings.point_sigma)
     corr = None
     if 'correlated' in allowed or 'hybrid' in allowed:
         sb0 = base.bias_sigma if base.bias_sigma > 0 else 1e-3
@@ -270,22 +312,27 @@ def select_model(cameras, measured, obs: Observations, base: PriorSettings = Non
         corr = best([run(model='correlated', bias_sigma=sb, coherence_length=L)
                      for sb in grid['bias_sigma']]).settings
     if 'hybrid' in allowed:
-        # Coordinate ascent from the better of two starts: the best kinematic scale with a
-        # small field, and the best correlated field with the kinematic part switched off
-        # (the same model as that correlated candidate, so hybrid can only gain on it).
+        # Coordinate ascent from the kinematic optimum with a small field, compared with the
+        # two limits: the field off (the best kinematic model) and the kinematic part off (the
+        # best correlated model), so hybrid can only gain on either.
+        ks, ps = kin.settings.kinematic_scale, kin.settings.point_sigma
         sbh = sorted(grid['hybrid_bias_sigma'])[len(grid['hybrid_bias_sigma']) // 2]
-        h = best([run(model='hybrid', bias_sigma=sbh, coherence_length=L,
-                      kinematic_scale=kin_scale) for L in grid['coherence_length']])
-        h = best([h] + [run(model='hybrid', bias_sigma=sb, kinematic_scale=kin_scale,
+        h = best([run(model='hybrid', bias_sigma=sbh, coherence_length=L, kinematic_scale=ks,
+                      point_sigma=ps) for L in grid['coherence_length']])
+        h = best([h] + [run(model='hybrid', bias_sigma=sb, kinematic_scale=ks, point_sigma=ps,
                             coherence_length=h.settings.coherence_length)
                         for sb in grid['hybrid_bias_sigma']])
+        h = best([h, run(model='hybrid', bias_sigma=0.0, kinematic_scale=ks, point_sigma=ps,
+                         coherence_length=h.settings.coherence_length)])
         if corr is not None:
             h = best([h, run(model='hybrid', bias_sigma=corr.bias_sigma, kinematic_scale=0.0,
-                             coherence_length=corr.coherence_length)])
+                             coherence_length=corr.coherence_length,
+                             point_sigma=corr.point_sigma)])
         hs = h.settings
-        best([h] + [run(model='hybrid', bias_sigma=hs.bias_sigma, kinematic_scale=k,
-                        coherence_length=hs.coherence_length)
-                    for k in (0.0,) + tuple(grid['kinematic_scale'])])
+        if hs.kinematic_scale > 0 and hs.bias_sigma > 0:
+            best([h] + [run(model='hybrid', bias_sigma=hs.bias_sigma, kinematic_scale=k,
+                            coherence_length=hs.coherence_length, point_sigma=hs.point_sigma)
+                        for k in grid['kinematic_scale']])
     if 'correlated' not in allowed:
         cands = [c for c in cands if c.settings.model != 'correlated']
     if 'kinematic' not in allowed:
@@ -295,9 +342,7 @@ def select_model(cameras, measured, obs: Observations, base: PriorSettings = Non
         raise ValueError('no candidate model could be adjusted: ' +
                          '; '.join(c.result.message for c in cands))
     top = best(ok)
-    near = [c for c in ok if c.log_evidence >= top.log_evidence - occam_margin]
-    simplest = min(COMPLEXITY.get(c.settings.model, 9) for c in near)
-    chosen = best([c for c in near if COMPLEXITY.get(c.settings.model, 9) == simplest])
+    chosen = _occam_choice(ok, occam_margin)
     if holdout:
         for m in dict.fromkeys(c.settings.model for c in ok):
             b = best([c for c in ok if c.settings.model == m])
@@ -323,6 +368,77 @@ def select_model(cameras, measured, obs: Observations, base: PriorSettings = Non
         c.result = None if c is not chosen else c.result
     return ModelSelection(chosen.settings, final, cands, reason, time.perf_counter() - t0,
                           settings.pixel_sigma, noise)
+
+
+def _complexity(c):
+    """Complexity of a candidate's prior: a hybrid with one part off is the simpler model."""
+    s = c.settings
+    if s.model == 'hybrid' and (s.kinematic_scale == 0 or s.bias_sigma == 0):
+        return COMPLEXITY['kinematic']
+    return COMPLEXITY.get(s.model, 9)
+
+
+def _occam_choice(cands, margin):
+    """Among ``cands`` within ``margin`` of the best evidence, the best of the simplest."""
+    top = max(c.log_evidence for c in cands)
+    near = [c for c in cands if c.log_evidence >= top - margin]
+    simplest = min(_complexity(c) for c in near)
+    # ties (a hybrid limit and the model it equals) go to the plain model: lower table rank
+    return max((c for c in near if _complexity(c) == simplest),
+               key=lambda c: (c.log_evidence, -COMPLEXITY.get(c.settings.model, 9)))
+
+
+def _search_scale(evaluate, grid, point_sigma):
+    """
+    Evidence-maximising 1-D search of the kinematic scale; returns the best candidate.
+
+    ``evaluate(scale, point_sigma)`` returns a :class:`Candidate`.  The ``grid`` is extended by
+    factors of two while its best value sits at an end (``SCALE_EXTENSIONS`` times), then the
+    maximum is refined by successive parabolic interpolation of the log evidence against
+    log scale through the best point and its two neighbours (``SCALE_REFINEMENTS`` steps, until
+    the step is under ``SCALE_TOLERANCE``).
+    """
+    ev = {}
+
+    def at(k):
+        ev[float(k)] = evaluate(float(k), point_sigma)
+
+    def value(k):
+        c = ev[k]
+        return c.log_evidence if c.success and np.isfinite(c.log_evidence) else -np.inf
+
+    for k in grid:
+        at(k)
+    for _ in range(SCALE_EXTENSIONS):
+        ks = sorted(ev)
+        top = max(ks, key=value)
+        if top == ks[0] and np.isfinite(value(top)):
+            at(ks[0] / 2.0)
+        elif top == ks[-1] and np.isfinite(value(top)):
+            at(ks[-1] * 2.0)
+        else:
+            break
+    tol = np.log1p(SCALE_TOLERANCE)
+    for _ in range(SCALE_REFINEMENTS):
+        ks = sorted(ev)
+        i = int(np.argmax([value(k) for k in ks]))
+        if i == 0 or i == len(ks) - 1:
+            break
+        x = np.log(ks[i - 1:i + 2])
+        y = np.array([value(k) for k in ks[i - 1:i + 2]])
+        if not np.all(np.isfinite(y)):
+            break
+        # Vertex of the parabola through three points (concave, since the middle is highest).
+        d1, d2 = (y[1] - y[0]) / (x[1] - x[0]), (y[2] - y[1]) / (x[2] - x[1])
+        curv = (d2 - d1) / (x[2] - x[0])
+        if not curv < 0:
+            break
+        xv = 0.5 * (x[0] + x[1]) - d1 / (2.0 * curv)
+        xv = float(np.clip(xv, x[0] + tol, x[2] - tol))
+        if min(abs(xv - np.log(k)) for k in ks) < tol:
+            break
+        at(np.exp(xv))
+    return max(ev.values(), key=lambda c: c.log_evidence if c.success else -np.inf)
 
 
 def _reason(chosen, ok):

@@ -315,6 +315,19 @@ class KinematicChain:
             out.append(np.array([tt, tt, tt, tr, tr, tr], float))
         return np.concatenate(out)
 
+    def sample_configurations(self, m: int, rng=None) -> np.ndarray:
+        """
+        Return ``m`` joint configurations (m, n) drawn uniformly within the URDF limits.
+
+        Continuous joints (infinite limits) are drawn over [-pi, pi].
+        """
+        if int(m) != m or m < 1:
+            raise ValueError(f'm must be a positive integer, got {m}')
+        rng = rng if rng is not None else np.random.default_rng(0)
+        lo = np.where(np.isfinite(self.lower), self.lower, -np.pi)
+        hi = np.where(np.isfinite(self.upper), self.upper, np.pi)
+        return rng.uniform(lo, hi, (int(m), self.n_joints))
+
     # ---- forward kinematics ----------------------------------------------------------
 
     def _forward(self, q, errors, keep_joint_frames=False, keep_link_frames=False):
