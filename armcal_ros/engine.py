@@ -601,6 +601,13 @@ class CalibrationEngine:
             store = SampleStore.load(directory, joint_names=self.store.joint_names,
                                      max_samples=self.store.max_samples,
                                      min_sample_spacing=self.store.min_sample_spacing)
+            board = self.settings.board is not None
+            wrong = [smp.id for smp in store.samples
+                     if (smp.pose is None or smp.reference_points is None) == board]
+            if wrong:
+                raise ValueError(f'{store_file}: {len(wrong)} saved samples are '
+                                 f'{"point" if board else "board"} samples, but the target '
+                                 f'is a {"board" if board else "point"} (marker_type changed?)')
             with self._lock:
                 self.store = store
             said.append(f'{len(store)} samples')

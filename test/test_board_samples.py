@@ -195,6 +195,8 @@ def test_engine_solves_board_samples_and_resumes_its_mount(joint_bag, tmp_path):
     said = fresh.load(tmp_path / 'o')
     assert 'mount' in said and len(fresh.store) == 8
     np.testing.assert_allclose(fresh.T_link_target, T, atol=1e-6)
+    with pytest.raises(ValueError, match='8 saved samples are board samples'):
+        CalibrationEngine(EngineSettings(['cam'])).load(tmp_path / 'o')
 
 
 def test_charuco_pose_input_through_the_collector(tmp_path):
