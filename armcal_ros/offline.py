@@ -358,5 +358,10 @@ def run(args):
     if not args.quiet:
         print('', file=sys.stderr)
     print(format_table(res.report))
+    tgt = res.report.get('target')
+    if tgt and tgt['T_link_target'] is not None:
+        print(f'T_{values["marker_link"]}_target (x y z qx qy qz qw): ' +
+              ' '.join(f'{v:.5f}' for v in tgt['T_link_target']) +
+              (' (estimated)' if tgt['estimated'] else ' (given)'))
     print(f'wrote {", ".join(os.path.basename(f) for f in res.files)} to {args.output}')
     return 0
