@@ -66,6 +66,8 @@ MODELS = ('oracle', 'kinematic-true', 'fixed', 'independent', 'correlated', 'kin
 REFERENCES = ('oracle', 'kinematic-true')
 #: The models (fixed excluded) among which "best" is taken; ESTIMATORS without auto.
 ESTIMATORS = tuple(m for m in MODELS if m not in REFERENCES + ('fixed',))
+#: The seed-spread check of the geometric shape ratio (``--floor-seeds``).
+FLOOR_N = 1000
 #: Per-point sigma of the kinematic-true reference (the linearisation error is ~1 um).
 TRUE_PRIOR_POINT_SIGMA = 0.02e-3
 PIXEL_SIGMA = 0.3
@@ -161,6 +163,44 @@ def run_case(scenario, n, seed):
     return out
 
 
+def floor_case(n, seed):
+    """Shape error (mm) of oracle, kinematic-true and kinematic* on one geometric problem."""
+    prob = make_robot_problem('geometric', n, seed, pixel_sigma=PIXEL_SIGMA)
+    s = SolverSettings(pixel_sigma=PIXEL_SIGMA)
+    fixed = calibrate(prob.specs, prob.measured, prob.obs, PriorSettings('fixed'), s)
+    cams0, inl = fixed.adjustment.camera_list(), fixed.adjustment.inliers
+    orc = calibrate(prob.specs, prob.true_points, prob.obs, PriorSettings('fixed'), s)
+    kt = adjust(cams0, prob.measured, prob.obs,
+                PriorSettings('kinematic', point_sigma=TRUE_PRIOR_POINT_SIGMA), s, inliers=inl,
+                kinematics=true_prior(prob))
+    sel = select_model(cams0, prob.measured, prob.obs, PriorSettings(), s, prob.kinematics,
+                       inl, models=['kinematic'], holdout=False)
+
+    def shape(cams):
+        return score_cameras({c.name: c for c in cams}, prob.truth, prob.test_points).shape_mm
+    return {'oracle': shape(orc.adjustment.camera_list()), 'kinematic-true': shape(
+        kt.camera_list()), 'kinematic*': shape(sel.choice_of('kinematic').cameras)}
+
+
+def floor_table(floor):
+    """Markdown lines for the seed-spread check of the geometric shape ratio."""
+    o = np.array([c['oracle'] for c in floor])
+    lines = ['', f'Spread over seeds of the geometric shape ratio (N = {FLOOR_N}, seeds 0-'
+             f'{len(floor) - 1}; the first five are the seeds above): ratio of means, and mean '
+             '+- standard error of the per-seed ratio.', '']
+    rows = []
+    for m in ('kinematic-true', 'kinematic*'):
+        v = np.array([c[m] for c in floor])
+        r = v / o
+        for k, sl in ((5, slice(0, 5)), (len(floor), slice(None))):
+            rows.append([m, k, f'{o[sl].mean():.4f}', f'{v[sl].mean():.4f}',
+                         f'{v[sl].mean() / o[sl].mean():.3f}',
+                         f'{r[sl].mean():.3f} +- {r[sl].std(ddof=1) / np.sqrt(r[sl].size):.3f}'])
+    lines.append(table(['model', 'seeds', 'oracle shape mm', 'model shape mm', 'ratio of means',
+                        'per-seed ratio'], rows))
+    return lines
+
+
 def summarise(results, scenarios, sizes, seeds):
     """Mean over seeds per (scenario, N, model)."""
     summary = {}
@@ -228,8 +268,15 @@ def main(argv=None):
     ap.add_argument('--sizes', type=int, nargs='+', default=[300, 1000])
     ap.add_argument('--seeds', type=int, default=5)
     ap.add_argument('--scenarios', nargs='+', default=list(SCENARIOS))
+    ap.add_argument('--floor-seeds', type=int, default=20,
+                    help='seeds of the geometric shape-ratio spread check (0: skip)')
     args = ap.parse_args(argv)
     results = {}
+    floor = []
+    for seed in range(args.floor_seeds if 'geometric' in args.scenarios else 0):
+        floor.append(floor_case(FLOOR_N, seed))
+        print(f'floor seed={seed}: ' + ', '.join(f'{k} {v:.4f}' for k, v in floor[-1].items()),
+              flush=True)
     for sc in args.scenarios:
         for n in args.sizes:
             for seed in range(args.seeds):
@@ -297,10 +344,38 @@ def main(argv=None):
                    table(['target', 'measured', 'limit', 'met'],
                          [[a, f'{v:.3f}', f'{lim:g}', 'yes' if ok else '**no**']
                           for a, v, lim, ok in t])]
+    if len(floor) >= 5:
+        md += floor_table(floor)
+    md += ['', 'Why targets are missed (measured):', '',
+           '- `geometric: best absolute / fixed absolute`: against the raw truth every model '
+           'carries the unobservable rigid motion (`removed mm`), the same for all of them, so '
+           'the ratio cannot approach 0.5; against the canonical truth (`abs-observable`, the '
+           'fair comparison) the kinematic models are well under it.',
+           '- `geometric: best shape / oracle shape`: `kinematic-true` (the kinematic model '
+           'with the simulator\'s own error sigmas as its prior and s_n = 0.02 mm, i.e. the '
+           'right prior, which no estimator is given) sits at the same ratio as `kinematic*`, '
+           'and the kinematic model noise-free reaches 0.0003 mm: what is left is the variance '
+           'of the 19 observable kinematic parameters estimated from the same images, not model '
+           'error or a poor choice of hyperparameters. The five-seed mean is also at the mercy '
+           'of the seeds: the per-seed ratio scatters by about 0.4 (standard error about 0.17 '
+           'for five seeds; the spread table above), and over twenty seeds both stay clearly '
+           'under 1.5.',
+           '- `hybrid*` against the better of correlated and kinematic: `hybrid*` equals '
+           '`kinematic*` (its field-off limit) unless a field gains more than the Occam margin '
+           'in evidence; where it is missed, a seed\'s evidence chose a field on top (the '
+           'chosen labels above) that fits the non-geometric residual but costs shape, and '
+           '`kinematic*` at its evidence-chosen scale and s_n is within a few per cent of the '
+           'default `kinematic` (same data, different prior width). Seed 0 of `nongeometric` at '
+           'N = 1000: the field (s_b 0.3 mm, L 0.6 m) gains 4.3 in log evidence over its own '
+           'field-off limit, the held-out check prefers the limit by only 1.5 % (0.430 against '
+           '0.436 px), and the shape is 0.183 against 0.168 mm: a smooth field partly absorbs '
+           'the joint-angle-periodic errors, which are not a function of position, and trades '
+           'off with the cameras.']
     text = '\n'.join(md)
     print(text)
     write_section('accuracy', text)
-    write_json('accuracy', {'summary': summary, 'cases': results, 'machine': machine()})
+    write_json('accuracy', {'summary': summary, 'cases': results, 'floor': floor,
+                            'machine': machine()})
     return 0
 
 

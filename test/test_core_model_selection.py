@@ -5,10 +5,9 @@ import pytest
 from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.calibration import calibrate
 from armcal_ros.core.model_selection import (_search_scale, Candidate, DEFAULT_GRID,
-                                             estimate_pixel_sigma,
-                                             OCCAM_MARGIN, SCALE_EXTENSIONS, SCALE_REFINEMENTS,
-                                             SCALE_TOLERANCE,
-                                             select_model)
+                                             estimate_pixel_sigma, OCCAM_MARGIN, SCALE_BOUNDS,
+                                             SCALE_EXTENSIONS, SCALE_REFINEMENTS,
+                                             SCALE_TOLERANCE, select_model)
 from armcal_ros.core.priors import PriorSettings
 from armcal_ros.sim.robot_points import make_robot_problem
 from armcal_ros.sim.synthetic import make_problem
@@ -109,6 +108,13 @@ def test_scale_search_brackets_and_refines_the_evidence_maximum(true_scale):
     # a parabola in log scale: found to within the search tolerance
     assert abs(np.log(best.settings.kinematic_scale / true_scale)) < np.log1p(SCALE_TOLERANCE)
     assert len(calls) <= 3 + SCALE_EXTENSIONS + SCALE_REFINEMENTS
+
+
+def test_scale_search_stays_within_its_bounds():
+    evaluate, calls = _fake(lambda k: -40.0 * (np.log(k) - np.log(50.0)) ** 2)
+    best = _search_scale(evaluate, (0.5, 1.0, 2.0), 1e-5)
+    assert best.settings.kinematic_scale == SCALE_BOUNDS[1]
+    assert max(calls) <= SCALE_BOUNDS[1]
 
 
 def test_scale_search_survives_failed_candidates():
