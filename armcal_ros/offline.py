@@ -78,7 +78,9 @@ def build_collector(values, log=None):
             chain = KinematicChain.from_urdf(urdf_text(values), values['base_frame'],
                                              values['marker_link'])
         except ValueError as exc:
-            raise CalibrateError(f'robot model: {exc}') from exc
+            raise CalibrateError(f'robot model (parameters robot_description/'
+                                 f'robot_description_file, base_frame, marker_link): '
+                                 f'{exc}') from exc
     board, target = _board(values)
     detectors = make_detectors(values, values['camera_names'], board)
     return chain, SampleCollector(chain, values['marker_offset'], values['camera_names'],
