@@ -123,3 +123,14 @@ def test_gauge_validates_its_arguments():
         base_motion_gauge(J, np.zeros((4, 3)), np.array([1.0, 0.0]))
     with pytest.raises(ValueError, match='jacobian'):
         base_motion_gauge(np.zeros((4, 2)), np.zeros((4, 3)), np.ones(2))
+
+
+def test_sample_configurations_cover_the_urdf_limits(arm):
+    chain = arm[0]
+    q = chain.sample_configurations(2000, np.random.default_rng(7))
+    assert q.shape == (2000, chain.n_joints)
+    assert np.all(q >= chain.lower) and np.all(q <= chain.upper)
+    span = (q.max(axis=0) - q.min(axis=0)) / (chain.upper - chain.lower)
+    assert np.all(span > 0.95)
+    with pytest.raises(ValueError, match='m must be'):
+        chain.sample_configurations(0)
