@@ -103,8 +103,9 @@ SCALE_REFINEMENTS = 3
 SCALE_TOLERANCE = 0.05
 #: Range of the kinematic scale search.  Beyond 8 x the default sigmas (0.8 deg offsets, 4 mm
 #: link errors) the kinematic model is not describing an arm any more but absorbing whatever
-#: the data hold (on the ``gp-prior`` benchmark, a field it cannot represent, the evidence
-#: asked for 10 x and the frame drifted by 80 mm); such an arm needs its own scales.
+#: the data hold (on the ``gp-prior`` benchmark, a position field it cannot represent, the
+#: evidence runs to the bound, hundreds of log units below the correlated model); an arm that
+#: really is that far off needs its own scales.
 SCALE_BOUNDS = (0.125, 8.0)
 
 
