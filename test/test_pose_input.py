@@ -86,6 +86,14 @@ def test_pose_input_sphere_bag_matches_truth_and_joint_input(sim_bag, tmp_path):
         assert np.linalg.norm(c.center - ref[name].center) < 0.005
 
 
+@pytest.mark.slow
+def test_pose_input_auto_chooses_among_the_point_models(sim_bag, tmp_path):
+    res = calibrate_bag(sim_bag, _values(pose_topic=POSE_TOPIC, robot_description_file='',
+                                         noise_model='auto'), tmp_path / 'auto')
+    assert res.report['accepted']
+    assert res.report['chosen']['model'] in ('fixed', 'independent', 'correlated')
+
+
 def test_pose_input_refuses_models_that_need_joint_angles(sim_bag, tmp_path):
     with pytest.raises(ValueError, match='noise_model kinematic.*pose_topic|pose_topic.*'
                        'noise_model kinematic'):
