@@ -16,8 +16,9 @@ Threads and why:
 So a slow decode or a long solve never delays a callback, and a burst the worker cannot keep up
 with costs the oldest images (counted in diagnostics), never the joint states they need.
 
-Interface (node ``armcal``; DESIGN.md section 5): subscribes to ``joint_states_topic`` and
-``image_topics`` (best effort); publishes ``~/<camera>/camera_info`` and ``~/<camera>/pose``
+Interface (node ``armcal``; DESIGN.md section 5): subscribes to ``joint_states_topic`` (or,
+with pose input, ``pose_topic`` carrying ``pose_type``) and ``image_topics`` (best effort);
+publishes ``~/<camera>/camera_info`` and ``~/<camera>/pose``
 (reliable, transient local), ``~/markers`` (RViz), ``/diagnostics`` (1 Hz) and ``~/samples``
 (a PointStamped per stored sample, stamped with its dwell's median image time); serves
 ``~/calibrate``, ``~/reset`` and ``~/save`` (std_srvs/Trigger); calls each driver's
@@ -40,7 +41,8 @@ import time
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import (PointStamped, PoseStamped, PoseWithCovarianceStamped,
+                               TransformStamped)
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
@@ -58,6 +60,7 @@ from visualization_msgs.msg import MarkerArray
 from armcal_ros.offline import build_collector, build_engine, CalibrateError, stamp_ns
 from armcal_ros.params import (BY_NAME, check_all, check_value, default_output_dir, NODE_NAME,
                                PARAMS, prior_settings, solver_settings)
+from armcal_ros.pipeline import pose_from_msg
 from armcal_ros.ros import conversions as conv
 from armcal_ros.ros.event_queue import EventQueue
 from armcal_ros.ros.raw_message import LazyMessage
@@ -161,8 +164,7 @@ class CalibratorNode(Node):
         try:
             self.chain, self.collector = build_collector(v, log=self._log_input)
         except (CalibrateError, ValueError) as exc:
-            raise ParameterError(f'parameters robot_description/robot_description_file, '
-                                 f'base_frame, marker_link: {exc}') from exc
+            raise ParameterError(str(exc)) from exc
         self.engine = build_engine(v, self.chain)
         self.engine.on_result(self._on_solve)
         self.queue = EventQueue(QUEUE_BOUNDS)
@@ -201,8 +203,17 @@ class CalibratorNode(Node):
                               reliability=ReliabilityPolicy.BEST_EFFORT,
                               durability=DurabilityPolicy.VOLATILE)
         quiet = {'event_callbacks': _no_events(SubscriptionEventCallbacks)}
-        self.create_subscription(JointState, v['joint_states_topic'], self._on_joint_state,
-                                 sensor_qos(1000), **quiet)
+        if v['pose_topic']:
+            # Pose input: the marker link's measured pose replaces the joint states and the
+            # robot model; poses travel in the joint states' queue (the arm's stream).
+            ptype = PoseStamped if v['pose_type'] == 'pose_stamped' else TransformStamped
+            self.create_subscription(ptype, v['pose_topic'], self._on_joint_state,
+                                     sensor_qos(1000), **quiet)
+            arm = f'{ptype.__name__} poses on {v["pose_topic"]}'
+        else:
+            self.create_subscription(JointState, v['joint_states_topic'],
+                                     self._on_joint_state, sensor_qos(1000), **quiet)
+            arm = f'joint states on {v["joint_states_topic"]}'
         for cam, topic in zip(self.camera_names, v['image_topics']):
             mtype = CompressedImage if topic.rstrip('/').endswith('/compressed') else Image
             # raw: kept serialized until the front end wants the pixels (raw_message.py).
@@ -219,9 +230,8 @@ class CalibratorNode(Node):
         self.add_on_set_parameters_callback(self._check_runtime_parameters)
         self.add_post_set_parameters_callback(self._apply_runtime_parameters)
         self.get_logger().info(
-            f'calibrating {self.camera_names} ({v["noise_model"]} model) with joint states on '
-            f'{v["joint_states_topic"]}; marker on {v["marker_link"]}; output in '
-            f'{self.output_dir}')
+            f'calibrating {self.camera_names} ({v["noise_model"]} model) with {arm}; '
+            f'{v["marker_type"]} on {v["marker_link"]}; output in {self.output_dir}')
 
     # -- parameters ----------------------------------------------------------------------
     def _declare_and_check(self, argv):
@@ -263,14 +273,6 @@ class CalibratorNode(Node):
                 if os.path.exists(os.path.join(d, rel)):
                     values['robot_description_file'] = os.path.normpath(os.path.join(d, rel))
                     break
-        if values['pose_topic']:
-            errors.append('parameter pose_topic: pose input is offline-only for now (armcal '
-                          'calibrate); the node calibrates from joint states')
-        if values['marker_type'] == 'charuco':
-            errors.append('parameter marker_type: charuco boards are offline-only for now '
-                          '(armcal calibrate with pose input); the node takes sphere or aruco')
-        if errors:
-            raise ParameterError('; '.join(errors))
         try:
             check_all(values)
             prior_settings(values)
@@ -355,7 +357,9 @@ class CalibratorNode(Node):
                     continue
                 last_input = time.monotonic()
                 flushed = False
-                if kind == 'joint':
+                if kind == 'joint' and self.collector.pose_input:
+                    samples = self._guard(self._add_pose, item)
+                elif kind == 'joint':
                     samples = self._guard(self.collector.add_joint_state,
                                           stamp_ns(item.header.stamp), item.name, item.position)
                 else:
@@ -367,6 +371,9 @@ class CalibratorNode(Node):
             self._snapshot()
             if len(batch) < BATCH_SIZE:
                 time.sleep(WORKER_BATCH_PERIOD_S)
+
+    def _add_pose(self, msg):
+        return self.collector.add_pose(stamp_ns(msg.header.stamp), *pose_from_msg(msg))
 
     def _add_image(self, camera, msg: LazyMessage):
         try:

@@ -1,0 +1,130 @@
+"""
+The node with pose input on real rclpy and DDS: a replayed sphere bag with a PoseStamped topic.
+
+A 30 s simulated bag carrying the marker link's pose (and the joint states, which a pose-input
+node does not subscribe to) is replayed at 2x into ``calibrator_node`` started without any robot
+model; ``~/calibrate`` at the end must give CameraInfo for every camera close to the truth.  A
+pose-input node refuses the models that need joint angles at start-up, with the reason.
+Helpers, QoS and the process hygiene are those of test_ros_node.py.
+"""
+
+import os
+import sys
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy')
+
+from sensor_msgs.msg import CameraInfo  # noqa: E402
+
+from armcal_ros.io.calib_files import read_cameras  # noqa: E402
+from test_ros_node import Client, diag_values, Proc, start_node, wait_until  # noqa: E402
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
+
+CAMS = ['cam1', 'cam2', 'cam3']
+POSE_TOPIC = '/tool_pose'
+RATE = 2.0
+DURATION = 30.0
+
+
+@pytest.fixture(scope='module')
+def ros_env(tmp_path_factory):
+    """Own ROS domain, log directory and localhost discovery, as in test_ros_node.py."""
+    keys = ('ROS_DOMAIN_ID', 'ROS_LOG_DIR', 'ROS_AUTOMATIC_DISCOVERY_RANGE')
+    saved = {k: os.environ.get(k) for k in keys}
+    os.environ['ROS_DOMAIN_ID'] = str(1 + (os.getpid() + 101) % 200)
+    os.environ['ROS_LOG_DIR'] = str(tmp_path_factory.mktemp('ros_log'))
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    yield dict(os.environ, PYTHONUNBUFFERED='1')
+    for k, v in saved.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
+@pytest.fixture(scope='module')
+def client(ros_env):
+    c = Client()
+    yield c
+    c.close()
+
+
+def write_params(path, **values):
+    import yaml
+    base = dict(marker_link='marker', marker_offset=[0.0, 0.0, 0.0], solve_period=2.0,
+                min_samples=12, pose_topic=POSE_TOPIC, pose_type='pose_stamped',
+                noise_model='correlated', resume=False)
+    base.update(values)
+    with open(path, 'w') as f:
+        yaml.safe_dump({'armcal': {'ros__parameters': base}}, f)
+    return str(path)
+
+
+@pytest.fixture(scope='module')
+def pose_sim(tmp_path_factory):
+    from armcal_ros.sim.cell import simulate_cell, SimSettings
+    from armcal_ros.sim.output import write_sim_bag
+    bag = tmp_path_factory.mktemp('posesim') / 'bag'
+    settings = SimSettings(duration=DURATION, dwell=(0.5, 0.8), speed_fraction=0.8,
+                           min_move_time=0.3)
+    write_sim_bag(simulate_cell('geometric', seed=3, settings=settings), str(bag),
+                  compress=False, pose_topic=POSE_TOPIC, pose_type='pose_stamped')
+    return bag
+
+
+def test_pose_input_replay_gives_camera_info(ros_env, client, pose_sim, tmp_path):
+    out = tmp_path / 'out'
+    params = write_params(tmp_path / 'params.yaml', output_dir=str(out))
+    info = {c: client.record(CameraInfo, f'/armcal/{c}/camera_info')[0] for c in CAMS}
+    from diagnostic_msgs.msg import DiagnosticArray
+    diag, _ = client.record(DiagnosticArray, '/diagnostics', 10)
+    procs = []
+    try:
+        node = start_node(ros_env, params, tmp_path / 'node.log')
+        procs.append(node)
+        wait_until(lambda: diag_values(diag, 'armcal: calibration') or not node.alive(), 30,
+                   'node diagnostics')
+        assert node.alive(), node.log()
+        replay = Proc([sys.executable, '-m', 'armcal_ros.cli', 'replay', str(pose_sim),
+                       '--rate', str(RATE), '--delay', '0.5'], ros_env, tmp_path / 'replay.log')
+        procs.append(replay)
+        replay.p.wait(timeout=DURATION / RATE + 60.0)
+        assert replay.p.returncode == 0, replay.log()
+        wait_until(lambda: (diag_values(diag, 'armcal: calibration') or {}).get(
+            'solving') == 'False', 120, 'the background solve to end')
+        t_cal = time.monotonic()
+        res = client.trigger('calibrate')
+        assert res.success, res.message
+        for c in CAMS:
+            wait_until(lambda: info[c] and info[c][-1][0] >= t_cal, 120,
+                       f'CameraInfo of {c} after ~/calibrate')
+        log = node.log()
+        assert 'pose' in log and POSE_TOPIC in log, log
+    finally:
+        for p in procs:
+            p.kill()
+    truth = {c.name: c for c in read_cameras(str(pose_sim / 'ground_truth'))[1]}
+    for c in CAMS:
+        msg = info[c][-1][1]
+        K = np.asarray(msg.k).reshape(3, 3)
+        assert (msg.width, msg.height) == (640, 480)
+        assert abs(K[0, 0] / truth[c].fx - 1.0) < 0.03, (c, K[0, 0], truth[c].fx)
+        assert abs(K[1, 1] / truth[c].fy - 1.0) < 0.03, (c, K[1, 1], truth[c].fy)
+    assert os.path.exists(out / 'extrinsics.yaml')
+
+
+def test_pose_input_node_refuses_models_needing_joint_angles(ros_env, tmp_path):
+    params = write_params(tmp_path / 'bad.yaml', output_dir=str(tmp_path / 'out'),
+                          noise_model='kinematic')
+    proc = start_node(ros_env, params, tmp_path / 'node.log')
+    try:
+        proc.p.wait(timeout=60)
+    finally:
+        proc.kill()
+    log = proc.log()
+    assert proc.p.returncode == 2, log
+    assert 'refusing to start' in log and 'noise_model and pose_topic' in log, log
