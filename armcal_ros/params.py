@@ -177,6 +177,12 @@ PARAMS = [
     Param('charuco_legacy_pattern', 'bool', False,
           'board made for OpenCV < 4.6 (robot_cal_tools): its corner numbering, frame (y up '
           'from the bottom row) and square pattern'),
+    Param('max_views_per_dwell', 'int', 3,
+          'charuco: once this many still frames of a camera in one dwell show the board, its '
+          'later still frames there are skipped undecoded (a board search costs tens of ms, one '
+          'view suffices, three let the median drop one bad view); 0: no cap; sphere and aruco '
+          'targets are never capped (their detection is cheap, their pooling wants many frames)',
+          lambda v: None if v >= 0 else 'must be >= 0 (0: no cap)', minimum=0),
     Param('estimate_marker_offset', 'bool', False,
           'estimate the target\'s pose on marker_link (T_link_target) from the data'),
     Param('target_pose_guess', 'double[]', [],

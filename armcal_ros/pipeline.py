@@ -5,7 +5,8 @@ From joint states or link poses, and images, to samples: the front end the node 
 pose input a measured link pose as (stamp, translation, quaternion), and an image as (camera,
 stamp, message-like object) - and returns samples ready for the engine.  Images are held
 undecoded until their pairing is known, so only frames taken while the target was still are
-decoded and searched for it.  Every rejected input is counted by reason (diagnostics) and
+decoded and searched for it (for a board, only until a dwell has ``max_views_per_dwell`` views
+of it per camera).  Every rejected input is counted by reason (diagnostics) and
 reported once through an optional ``log`` callback, never raised: a malformed message, an
 unknown joint, a NaN, a time jump or a missing camera costs that input, not the session.
 
@@ -110,14 +111,23 @@ class SampleCollector:
     (samples carry the link pose and the corners); otherwise it is one point at
     ``marker_offset`` in the marker link.
 
+    ``max_views_per_dwell`` (boards only; 0: no cap) is how many views of the board per camera
+    a dwell detects: a board's corners need one view (``min_frames`` 1), and searching every
+    still frame for it (tens of ms each) would fall behind three live cameras.  Later still
+    frames of that camera in the same dwell are counted in ``frames_skipped_dwell_full`` and
+    not decoded.  A sphere or a tag is not capped: detecting one costs about a millisecond,
+    and its pooling needs several frames (at least two, the median to reject a glint).
+
     ``counts`` holds how many inputs ended where (``joint_states`` or ``poses``, ``frames``,
-    ``frames_still``, ``detections``, and every rejection reason), for diagnostics.
-    ``image_sizes`` records each camera's (width, height) from its decoded images.
+    ``frames_still``, ``detections``, ``frames_skipped_dwell_full`` and every rejection
+    reason), for diagnostics.  ``image_sizes`` records each camera's (width, height) from its
+    decoded images.
     """
 
     def __init__(self, chain: Optional[KinematicChain], marker_offset, camera_names, detectors,
                  max_marker_speed=0.0375, dwell_radius=0.001, log=None,
-                 board: Optional[BoardTarget] = None, max_pose_gap_s=0.1):
+                 board: Optional[BoardTarget] = None, max_pose_gap_s=0.1,
+                 max_views_per_dwell=3):
         self.chain = chain
         self.pose_input = chain is None
         self.board = board
@@ -151,8 +161,13 @@ class SampleCollector:
             mean = None
         # A board's corners come from its markers' ids and a local homography fit: one frame
         # is trustworthy; a glint can pass as a sphere, so a sphere needs two.
+        if isinstance(max_views_per_dwell, bool) or not isinstance(max_views_per_dwell, int) \
+                or max_views_per_dwell < 0:
+            raise ValueError('max_views_per_dwell must be an integer >= 0 (0: no cap), got '
+                             f'{max_views_per_dwell!r}')
         self.pooler = DwellPooler(fk, dwell_radius=dwell_radius,
-                                  min_frames=1 if board is not None else 2, mean_config=mean)
+                                  min_frames=1 if board is not None else 2, mean_config=mean,
+                                  max_views=max_views_per_dwell if board is not None else 0)
         self.counts = collections.Counter()
         self.image_sizes: Dict[str, tuple] = {}
         self.log = RateLimitedLog(log)
@@ -229,7 +244,10 @@ class SampleCollector:
             dets = ()
             if frame.status is PairStatus.STILL:
                 self.counts['frames_still'] += 1
-                dets = self._detect(frame.camera, frame.payload)
+                if self.pooler.needs_detection(frame):
+                    dets = self._detect(frame.camera, frame.payload)
+                else:
+                    self.counts['frames_skipped_dwell_full'] += 1
             else:
                 self.counts[f'frames_{frame.status.value}'] += 1
             samples.extend(self.pooler.add(frame, dets))

@@ -473,11 +473,17 @@ class DwellPooler:
     reference points (an extended target), the dwell radius applies to the farthest of them
     and the sample carries them as ``reference_points`` (``point_nominal`` the first; the
     caller completes the sample).  At most ``max_frames`` frames per camera are kept per dwell.
+
+    ``max_views`` > 0 caps the detection work: once a camera has ``max_views`` frames with
+    detections in the open dwell, :meth:`needs_detection` is False for its further still
+    frames there, and the caller passes them without detections.  They still extend the dwell
+    (its stamps, its joint mean and its gap and length limits) as any frame without a
+    detection does, so the sample is the one the first ``max_views`` views give; 0 is no cap.
     """
 
     def __init__(self, fk, dwell_radius=0.001, max_gap_ns=500_000_000,
                  max_dwell_ns=10_000_000_000, min_frames=2, outlier_px=2.0, max_frames=200,
-                 mean_config=None):
+                 mean_config=None, max_views=0):
         if not callable(fk):
             raise ValueError('fk must be callable: fk(Q (M, n)) -> (M, 3)')
         if mean_config is not None and not callable(mean_config):
@@ -500,6 +506,11 @@ class DwellPooler:
         if int(max_frames) < self.min_frames:
             raise ValueError(f'max_frames must be >= min_frames, got {max_frames!r}')
         self.max_frames = int(max_frames)
+        if not isinstance(max_views, (int, np.integer)) or isinstance(max_views, bool) or not (
+                max_views == 0 or self.min_frames <= max_views):
+            raise ValueError(f'max_views must be 0 (no cap) or an integer >= min_frames '
+                             f'({self.min_frames}), got {max_views!r}')
+        self.max_views = int(max_views)
         self._dwell = None
 
     @property
@@ -514,21 +525,38 @@ class DwellPooler:
             if frame.status in (PairStatus.MOVING, PairStatus.GAP, PairStatus.TIME_JUMP):
                 out.extend(self.flush())
             return out
-        dwell = self._dwell
-        if dwell is not None:
-            far = np.linalg.norm(np.reshape(frame.point - dwell.anchor, (-1, 3)),
-                                 axis=1).max() > self.dwell_radius
-            gap = (frame.stamp_ns - dwell.last_stamp > self.max_gap_ns
-                   or dwell.first_stamp - frame.stamp_ns > self.max_gap_ns)
-            too_long = frame.stamp_ns - dwell.first_stamp > self.max_dwell_ns
-            if far or gap or too_long:
-                out.extend(self.flush())
+        if self._dwell is not None and not self._joins(frame):
+            out.extend(self.flush())
         if self._dwell is None:
             self._dwell = _Dwell(frame)
         frames = self._dwell.per_camera.get(frame.camera, ())
         if len(frames) < self.max_frames:
+            if self.max_views and len(frames) >= self.max_views:
+                detections = ()
             self._dwell.add(frame, detections)
         return out
+
+    def needs_detection(self, frame):
+        """
+        Return False when ``frame``'s detections would not be used (the views cap).
+
+        That is a still frame that joins the open dwell, whose camera already has
+        ``max_views`` frames with detections there; always True without a cap.
+        """
+        if not self.max_views or frame.status is not PairStatus.STILL or \
+                self._dwell is None or not self._joins(frame):
+            return True
+        return len(self._dwell.per_camera.get(frame.camera, ())) < self.max_views
+
+    def _joins(self, frame):
+        """Return True when the still ``frame`` belongs to the open dwell."""
+        dwell = self._dwell
+        far = np.linalg.norm(np.reshape(frame.point - dwell.anchor, (-1, 3)),
+                             axis=1).max() > self.dwell_radius
+        gap = (frame.stamp_ns - dwell.last_stamp > self.max_gap_ns
+               or dwell.first_stamp - frame.stamp_ns > self.max_gap_ns)
+        too_long = frame.stamp_ns - dwell.first_stamp > self.max_dwell_ns
+        return not (far or gap or too_long)
 
     def poll(self, now_ns):
         """Close the dwell if nothing was added for ``max_gap_ns`` before ``now_ns``."""
