@@ -85,7 +85,8 @@ def build_collector(values, log=None):
     detectors = make_detectors(values, values['camera_names'], board)
     return chain, SampleCollector(chain, values['marker_offset'], values['camera_names'],
                                   detectors, values['max_marker_speed'], values['dwell_radius'],
-                                  log=log, board=target)
+                                  log=log, board=target,
+                                  max_views_per_dwell=values['max_views_per_dwell'])
 
 
 def build_engine(values, chain):

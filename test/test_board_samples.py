@@ -176,6 +176,15 @@ def test_charuco_joint_input_board_samples_store_round_trip(joint_bag, tmp_path)
         np.testing.assert_array_equal(a.observations['cam'].uv, b.observations['cam'].uv)
 
 
+def test_max_views_per_dwell_parameter_reaches_the_front_end(joint_bag, tmp_path):
+    values = load_params_file(_joint_params(joint_bag, tmp_path))
+    values['max_views_per_dwell'] = 1
+    front = collect_samples(str(joint_bag / 'bag'), values)
+    assert len(front.store) == 8
+    assert front.counts['detections'] == 8
+    assert all(s.observations['cam'].n_frames == 1 for s in front.store.samples)
+
+
 @pytest.mark.slow
 def test_engine_solves_board_samples_and_resumes_its_mount(joint_bag, tmp_path):
     values = load_params_file(_joint_params(joint_bag, tmp_path))

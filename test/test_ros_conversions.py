@@ -247,7 +247,7 @@ def test_descriptors_declare_types_ranges_and_read_only(ros_context, tmp_path):
     (dict(camera_names=['cam1', 'cam2']), ['camera_names', 'image_topics', 'same length']),
     (dict(marker_link='no_such_link'), ['marker_link', 'no_such_link']),
     (dict(pixel_sigma=1), ['pixel_sigma', 'double']),
-    (dict(pose_topic='/flange_pose'), ['pose_topic', 'offline-only']),
+    (dict(pose_topic='/flange_pose', noise_model='kinematic'), ['noise_model', 'pose_topic']),
 ])
 def test_bad_parameters_refuse_the_start(ros_context, tmp_path, extra, words):
     from armcal_ros.ros.node import CalibratorNode, ParameterError
