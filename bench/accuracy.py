@@ -12,10 +12,11 @@ Models: oracle (true points, fixed), fixed, independent, correlated and kinemati
 documented defaults, and the evidence-tuned ones from the ``auto`` search: correlated*,
 kinematic* and hybrid*, each the candidate ``auto`` would choose were that the only model
 (``ModelSelection.choice_of``: for hybrid the Occam rule prefers its limits, field off =
-kinematic or kinematic part off = correlated, unless the full hybrid gains more than the
-margin), and auto (the chosen model, refined).  A reference, not a model: kinematic-true, the
-kinematic model with the simulator's own geometric error sigmas as its prior (the right prior,
-which no estimator is given) and s_n = 0.02 mm: the best the kinematic parameterisation can do.
+kinematic or kinematic part off = correlated, unless the full hybrid gains more than the margin
+and its held-out check does not reject it), and auto (the chosen model, refined).  A reference,
+not a model: kinematic-true, the kinematic model with the simulator's own geometric error
+sigmas as its prior (the right prior, which no estimator is given) and s_n = 0.02 mm: the best
+the kinematic parameterisation can do.
 
 Columns: absolute error (mm, robot base frame, against the raw true markers); abs-observable
 (mm): the absolute error against the canonical truth, the same for every model.  Some kinematic
@@ -40,8 +41,8 @@ ratio of kinematic-true and kinematic* to the oracle is also measured over ``--f
 (20) seeds at N = 1000, with the standard error of the per-seed ratio.
 
 Usage: python bench/accuracy.py [--sizes 300 1000] [--seeds 5] [--scenarios ...]
-[--floor-seeds 20].  Writes docs/BENCHMARKS.md (section "accuracy") and
-docs/bench/accuracy.json.
+[--floor-seeds 20] [--no-write].  Writes docs/BENCHMARKS.md (section "accuracy") and
+docs/bench/accuracy.json unless --no-write.
 """
 
 import argparse
@@ -165,7 +166,7 @@ def run_case(scenario, n, seed):
                             label=b.label())
     out['auto'] = dict(score(sel.result.camera_list(), prob, truth_obs), time_s=t_auto,
                        chosen=sel.settings.model, label=sel.choice_of(sel.settings.model).label(),
-                       reason=sel.reason)
+                       reason=sel.reason, holdout_checks=sel.holdout_checks)
     out['bias_rms_mm'] = 1e3 * float(np.sqrt(np.mean(np.sum(prob.bias ** 2, axis=1))))
     out['removed_mm'] = 1e3 * float(np.sqrt(np.mean(np.sum((prob.test_points - truth_obs) ** 2,
                                                            axis=1))))
@@ -279,6 +280,8 @@ def main(argv=None):
     ap.add_argument('--scenarios', nargs='+', default=list(SCENARIOS))
     ap.add_argument('--floor-seeds', type=int, default=20,
                     help='seeds of the geometric shape-ratio spread check (0: skip)')
+    ap.add_argument('--no-write', action='store_true',
+                    help='print the tables only; leave docs/ untouched')
     args = ap.parse_args(argv)
     results = {}
     floor = []
@@ -291,8 +294,13 @@ def main(argv=None):
             for seed in range(args.seeds):
                 t0 = time.perf_counter()
                 results[f'{sc}/{n}/{seed}'] = run_case(sc, n, seed)
+                a = results[f'{sc}/{n}/{seed}']['auto']
+                checks = '; '.join(
+                    f'{c["complex"]} vs {c["simpler"]}: {c["excess_px2"]:+.4f} +- '
+                    f'{c["se_px2"]:.4f} px^2' + (' REJECTED' if c['rejected'] else '')
+                    for c in a['holdout_checks'])
                 print(f'{sc} N={n} seed={seed}: {time.perf_counter() - t0:.1f} s, auto chose '
-                      f'{results[f"{sc}/{n}/{seed}"]["auto"]["label"]}', flush=True)
+                      f'{a["label"]}; held-out checks: {checks}', flush=True)
     summary = summarise(results, args.scenarios, args.sizes, args.seeds)
     md = ['## Accuracy of the noise models (bench/accuracy.py)', '',
           'PUMA 560 (Corke DH URDF) carrying a sphere marker, three 640x480 cameras (f ~ 800 px, '
@@ -310,9 +318,12 @@ def main(argv=None):
           '(its candidates, no extra solve; the candidate `auto` would choose were that the '
           'only model, so for `hybrid*` the Occam rule prefers its limits, field off = '
           'kinematic or kinematic part off = correlated, unless the full hybrid gains more '
-          'than 3 in log evidence); time of a `*` row is that one candidate\'s solve, '
-          'of `auto` the whole search (about twenty-five adjustments plus the held-out '
-          'checks). `kinematic-true` is a reference, not a model: the kinematic model with the '
+          'than 3 in log evidence and does not predict held-out points worse than that limit '
+          'by more than one standard error of the paired difference over five folds); time of '
+          'a `*` row is that one candidate\'s solve, of `auto` the whole search (about '
+          'twenty-five adjustments plus the held-out fits: one fold for the best candidate of '
+          'each model, all five for the pair the Occam check compares). `kinematic-true` is '
+          'a reference, not a model: the kinematic model with the '
           'simulator\'s own geometric error sigmas as its prior (the true prior of the '
           'geometric scenario) and s_n = 0.02 mm, the best this parameterisation can do. '
           '`abs-observable`: absolute error against the canonical truth, whose kinematic errors '
@@ -376,10 +387,20 @@ def main(argv=None):
            '`kinematic*` at its evidence-chosen scale and s_n is within a few per cent of the '
            'default `kinematic` (same data, different prior width). Seed 0 of `nongeometric` at '
            'N = 1000: the field (s_b 0.3 mm, L 0.6 m) gains 4.3 in log evidence over its own '
-           'field-off limit, the held-out check prefers the limit by only 1.5 % (0.430 against '
-           '0.436 px), and the shape is 0.183 against 0.168 mm: a smooth field partly absorbs '
-           'the joint-angle-periodic errors, which are not a function of position, and trades '
-           'off with the cameras.',
+           'field-off limit and the shape is 0.183 against 0.168 mm: a smooth field partly '
+           'absorbs the joint-angle-periodic errors, which are not a function of position, and '
+           'trades off with the cameras. Tried: the held-out check as part of the Occam rule '
+           '(the more complex candidate must also not predict held-out points worse than the '
+           'simpler one it replaces, by more than one standard error of the paired difference '
+           'over five folds). It changes nothing here: on the same folds the field predicts '
+           'unseen points slightly better than its limit (0.4332 against 0.4336 px RMS, excess '
+           '-0.0004 +- 0.0002 px^2; the 0.430 against 0.436 px reported before came from '
+           'different random splits per model, i.e. noise). Held-out reprojection measures '
+           'how well the robot\'s points are predicted, which the field does improve; what it '
+           'costs the cameras shows in neither the evidence nor the held-out check. The rule '
+           'is kept as a safeguard (it rejects a kinematic model fed joint states that do not '
+           'belong to the samples; it overturned no choice in this benchmark, `auto` takes '
+           'about 2-3 s longer at N = 1000).',
            '- Not a target, but visible: `kinematic*` on `gp-prior`. The arm is exact there and '
            'the bias is a position field the kinematic model cannot represent; its evidence '
            'asks for ever wider kinematic sigmas to absorb it (up to the search bound, 8 x the '
@@ -388,6 +409,8 @@ def main(argv=None):
            'so `auto` never chooses it.']
     text = '\n'.join(md)
     print(text)
+    if args.no_write:
+        return 0
     write_section('accuracy', text)
     write_json('accuracy', {'summary': summary, 'cases': results, 'floor': floor,
                             'machine': machine()})

@@ -1,11 +1,15 @@
 """Automatic model choice: the Laplace evidence picks the truth where the truth is known."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.calibration import calibrate
-from armcal_ros.core.model_selection import (_search_scale, Candidate, DEFAULT_GRID,
-                                             estimate_pixel_sigma, OCCAM_MARGIN, SCALE_BOUNDS,
+from armcal_ros.core.kinematic_prior import KinematicData
+from armcal_ros.core.model_selection import (_HeldOut, _occam_choice, _search_scale, Candidate,
+                                             DEFAULT_GRID, estimate_pixel_sigma, HOLDOUT_FOLDS,
+                                             HOLDOUT_Z, OCCAM_MARGIN, SCALE_BOUNDS,
                                              SCALE_EXTENSIONS, SCALE_REFINEMENTS,
                                              SCALE_TOLERANCE, select_model)
 from armcal_ros.core.priors import PriorSettings
@@ -151,3 +155,67 @@ def test_hybrid_search_contains_both_limits_and_kinematic_point_sigma_is_searche
     assert choice.settings.bias_sigma == 0 or choice.settings.kinematic_scale == 0 or \
         choice.log_evidence > max(kin.log_evidence, corr.log_evidence) + OCCAM_MARGIN
     assert sel.settings.model in ('kinematic', 'hybrid')
+
+
+def _heldout_case(kinematics_of):
+    """Geometric data, and the held-out check with the kinematic data ``kinematics_of`` gives."""
+    prob = make_robot_problem('geometric', 300, 0, n_test=20)
+    s = SolverSettings(pixel_sigma=0.3)
+    cams, inl = _fixed(prob, s)
+    quick = replace(s, max_gate_rounds=0, max_iterations=30, ftol=1e-6)
+    check = _HeldOut(cams, prob.measured, prob.obs, quick, kinematics_of(prob.kinematics), inl,
+                     np.random.default_rng(0))
+    simple = Candidate(PriorSettings('independent'), 0.0, 0.0, True)
+    # the evidence is set to win by far more than the margin: only the held-out check decides
+    complex_ = Candidate(PriorSettings('kinematic'), 10.0 * OCCAM_MARGIN, 0.0, True)
+    assert _occam_choice([simple, complex_], OCCAM_MARGIN) is complex_
+    return check, simple, complex_
+
+
+def test_heldout_check_keeps_the_simpler_model_when_the_complex_one_predicts_worse():
+    # Joint angles that do not belong to the points (each sample paired with its neighbour's
+    # joint state): the kinematic model fits the training points through a wrong Jacobian
+    # and predicts unseen points worse than no correction at all.
+    def misaligned(k):
+        return KinematicData(np.roll(k.jacobian, 1, axis=0), k.names, k.sigma)
+    check, simple, complex_ = _heldout_case(misaligned)
+    excess, se, rms_c, rms_s = check.compare(complex_, simple)
+    assert excess > HOLDOUT_Z * se and rms_c > rms_s
+    assert _occam_choice([simple, complex_], OCCAM_MARGIN, check) is simple
+    assert 'held-out' in complex_.holdout_note and check.log[-1]['rejected']
+    # every observation was predicted once, from the fit of the folds that do not hold it
+    assert np.all(np.isfinite(check.all_folds(simple)[check.active]))
+    assert check.folds == HOLDOUT_FOLDS
+
+
+def test_heldout_check_lets_the_right_complex_model_win():
+    check, simple, complex_ = _heldout_case(lambda k: k)
+    excess, se, rms_c, rms_s = check.compare(complex_, simple)
+    assert excess < -HOLDOUT_Z * se and rms_c < rms_s     # clearly better, not just tolerated
+    assert _occam_choice([simple, complex_], OCCAM_MARGIN, check) is complex_
+    assert complex_.holdout_note == '' and not check.log[-1]['rejected']
+
+
+class _Rejecting:
+    """Stub check: rejects the named models, records what it was asked."""
+
+    def __init__(self, *models):
+        self.models, self.asked = models, []
+
+    def rejects(self, c, s):
+        self.asked.append((c.settings.model, s.settings.model))
+        return c.settings.model in self.models
+
+
+def test_occam_rule_walks_down_the_complexity_ladder_when_the_check_rejects():
+    fixed = Candidate(PriorSettings('fixed'), -100.0, 0.0, True)
+    kin = Candidate(PriorSettings('kinematic'), 0.0, 0.0, True)
+    hyb = Candidate(PriorSettings('hybrid', bias_sigma=0.3e-3), 10.0, 0.0, True)
+    cands = [fixed, kin, hyb]
+    assert _occam_choice(cands, OCCAM_MARGIN, _Rejecting()) is hyb
+    stub = _Rejecting('hybrid')
+    # hybrid is compared with the evidence choice among the simpler ones, then kinematic, the
+    # fallback, with the candidates simpler than itself
+    assert _occam_choice(cands, OCCAM_MARGIN, stub) is kin
+    assert stub.asked == [('hybrid', 'kinematic'), ('kinematic', 'fixed')]
+    assert _occam_choice(cands, OCCAM_MARGIN, _Rejecting('hybrid', 'kinematic')) is fixed
