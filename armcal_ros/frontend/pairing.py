@@ -85,7 +85,85 @@ def _as_int_ns(stamp_ns, name='stamp_ns'):
     return value
 
 
-class JointHistory:
+class StampedRing:
+    """
+    A bounded, time-ordered ring of stamped rows with the input timing rules of the front end.
+
+    Shared by joint histories and pose histories.  :meth:`push` refuses a repeated stamp
+    (DUPLICATE) and a slightly older one (OUT_OF_ORDER); a stamp older than the newest by more
+    than ``jump_threshold_ns`` (a looping bag, a restarted simulation clock) clears the history,
+    is stored and returns TIME_JUMP.  Keeps the newest ``capacity`` rows in a buffer of twice
+    that, compacted when full, so appending is amortised O(1) and the stored rows are always one
+    contiguous, sorted view.
+    """
+
+    def __init__(self, width, capacity=4096, max_gap_ns=50_000_000,
+                 jump_threshold_ns=500_000_000):
+        if int(capacity) < 2:
+            raise ValueError(f'capacity must be >= 2, got {capacity!r}')
+        self.capacity = int(capacity)
+        self.max_gap_ns = _as_int_ns(max_gap_ns, 'max_gap_ns')
+        self.jump_threshold_ns = _as_int_ns(jump_threshold_ns, 'jump_threshold_ns')
+        if self.max_gap_ns <= 0 or self.jump_threshold_ns < 0:
+            raise ValueError('max_gap_ns must be positive and jump_threshold_ns non-negative')
+        self._t = np.zeros(2 * self.capacity, np.int64)
+        self._rows = np.zeros((2 * self.capacity, int(width)))
+        self._start = self._end = 0
+
+    def __len__(self):
+        return self._end - self._start
+
+    @property
+    def stamps(self):
+        """Return a view of the stored stamps in ns, oldest first."""
+        return self._t[self._start:self._end]
+
+    @property
+    def rows(self):
+        """Return a view of the stored rows, shape (len, width)."""
+        return self._rows[self._start:self._end]
+
+    @property
+    def first_stamp(self):
+        """Oldest stamp (ns) or None."""
+        return int(self._t[self._start]) if len(self) else None
+
+    @property
+    def last_stamp(self):
+        """Newest stamp (ns) or None."""
+        return int(self._t[self._end - 1]) if len(self) else None
+
+    def clear(self):
+        """Forget every row."""
+        self._start = self._end = 0
+
+    def push(self, stamp_ns, row) -> JointStatus:
+        """Append one checked row at ``stamp_ns``; return OK, TIME_JUMP or why it was refused."""
+        stamp_ns = int(stamp_ns)
+        status = JointStatus.OK
+        if len(self):
+            last = self.last_stamp
+            if stamp_ns == last:
+                return JointStatus.DUPLICATE
+            if stamp_ns < last:
+                if last - stamp_ns <= self.jump_threshold_ns:
+                    return JointStatus.OUT_OF_ORDER
+                self.clear()
+                status = JointStatus.TIME_JUMP
+        if self._end == self._t.shape[0]:
+            keep = self.capacity - 1
+            self._t[:keep] = self._t[self._end - keep:self._end]
+            self._rows[:keep] = self._rows[self._end - keep:self._end]
+            self._start, self._end = 0, keep
+        self._t[self._end] = stamp_ns
+        self._rows[self._end] = row
+        self._end += 1
+        if self._end - self._start > self.capacity:
+            self._start += 1
+        return status
+
+
+class JointHistory(StampedRing):
     """
     A bounded, time-ordered ring of joint samples in chain order, with linear interpolation.
 
@@ -101,46 +179,14 @@ class JointHistory:
         self.joint_names = tuple(str(n) for n in joint_names)
         if not self.joint_names or len(set(self.joint_names)) != len(self.joint_names):
             raise ValueError(f'joint_names must be non-empty and unique, got {joint_names!r}')
-        if int(capacity) < 2:
-            raise ValueError(f'capacity must be >= 2, got {capacity!r}')
-        self.capacity = int(capacity)
-        self.max_gap_ns = _as_int_ns(max_gap_ns, 'max_gap_ns')
-        self.jump_threshold_ns = _as_int_ns(jump_threshold_ns, 'jump_threshold_ns')
-        if self.max_gap_ns <= 0 or self.jump_threshold_ns < 0:
-            raise ValueError('max_gap_ns must be positive and jump_threshold_ns non-negative')
-        n = len(self.joint_names)
-        self._t = np.zeros(2 * self.capacity, np.int64)
-        self._q = np.zeros((2 * self.capacity, n))
-        self._start = self._end = 0
+        super().__init__(len(self.joint_names), capacity, max_gap_ns, jump_threshold_ns)
         self._index_maps = {}
         self.missing = ()     # chain joints absent (or repeated) in the last refused message
-
-    def __len__(self):
-        return self._end - self._start
-
-    @property
-    def stamps(self):
-        """Return a view of the stored stamps in ns, oldest first."""
-        return self._t[self._start:self._end]
 
     @property
     def positions(self):
         """Return a view of the stored joint vectors in chain order, shape (len, n)."""
-        return self._q[self._start:self._end]
-
-    @property
-    def first_stamp(self):
-        """Oldest stamp (ns) or None."""
-        return int(self._t[self._start]) if len(self) else None
-
-    @property
-    def last_stamp(self):
-        """Newest stamp (ns) or None."""
-        return int(self._t[self._end - 1]) if len(self) else None
-
-    def clear(self):
-        """Forget every sample."""
-        self._start = self._end = 0
+        return self.rows
 
     def _index_map(self, names):
         key = tuple(names)
@@ -181,27 +227,7 @@ class JointHistory:
         q = positions[index]
         if not np.all(np.isfinite(q)):
             return JointStatus.NON_FINITE
-        status = JointStatus.OK
-        if len(self):
-            last = self.last_stamp
-            if stamp_ns == last:
-                return JointStatus.DUPLICATE
-            if stamp_ns < last:
-                if last - stamp_ns <= self.jump_threshold_ns:
-                    return JointStatus.OUT_OF_ORDER
-                self.clear()
-                status = JointStatus.TIME_JUMP
-        if self._end == self._t.shape[0]:
-            keep = self.capacity - 1
-            self._t[:keep] = self._t[self._end - keep:self._end]
-            self._q[:keep] = self._q[self._end - keep:self._end]
-            self._start, self._end = 0, keep
-        self._t[self._end] = stamp_ns
-        self._q[self._end] = q
-        self._end += 1
-        if self._end - self._start > self.capacity:
-            self._start += 1
-        return status
+        return self.push(stamp_ns, q)
 
     def lookup(self, stamps_ns):
         """

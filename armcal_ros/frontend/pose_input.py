@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from armcal_ros.frontend.pairing import JointStatus, PairStatus
+from armcal_ros.frontend.pairing import JointStatus, PairStatus, StampedRing
 
 
 def _check_pose(translation, quat_xyzw):
@@ -108,78 +108,31 @@ def _interpolate(t, p, q, stamps, max_gap_ns):
     return st, out
 
 
-class PoseHistory:
+class PoseHistory(StampedRing):
     """
     A bounded, time-ordered history of link poses with slerp interpolation (live pose input).
 
-    The interface of :class:`~armcal_ros.frontend.pairing.JointHistory`: :meth:`add` returns a
-    :class:`~armcal_ros.frontend.pairing.JointStatus` (a stamp older than the newest by more than
-    ``jump_threshold_ns`` clears the history - a looping bag - and a slightly older one is
-    dropped), :meth:`lookup` returns statuses and pose vectors.  Keeps the newest ``capacity``.
+    The interface of :class:`~armcal_ros.frontend.pairing.JointHistory` and its timing rules
+    (:class:`~armcal_ros.frontend.pairing.StampedRing`): :meth:`add` returns a
+    :class:`~armcal_ros.frontend.pairing.JointStatus`, :meth:`lookup` returns statuses and pose
+    vectors (translation, quaternion xyzw).
     """
 
     def __init__(self, capacity=4096, max_gap_ns=100_000_000, jump_threshold_ns=500_000_000):
-        if int(capacity) < 2:
-            raise ValueError(f'capacity must be >= 2, got {capacity!r}')
-        self.capacity = int(capacity)
-        self.max_gap_ns = int(max_gap_ns)
-        self.jump_threshold_ns = int(jump_threshold_ns)
-        if self.max_gap_ns <= 0 or self.jump_threshold_ns < 0:
-            raise ValueError('max_gap_ns must be positive and jump_threshold_ns non-negative')
-        self._t = np.zeros(2 * self.capacity, np.int64)
-        self._p = np.zeros((2 * self.capacity, 3))
-        self._q = np.zeros((2 * self.capacity, 4))
-        self._start = self._end = 0
-
-    def __len__(self):
-        return self._end - self._start
-
-    @property
-    def first_stamp(self):
-        """Oldest stamp (ns) or None."""
-        return int(self._t[self._start]) if len(self) else None
-
-    @property
-    def last_stamp(self):
-        """Newest stamp (ns) or None."""
-        return int(self._t[self._end - 1]) if len(self) else None
-
-    def clear(self):
-        """Forget every pose."""
-        self._start = self._end = 0
+        super().__init__(7, capacity, max_gap_ns, jump_threshold_ns)
 
     def add(self, stamp_ns, translation, quat_xyzw):
         """Add one pose; return a JointStatus (NON_FINITE for a bad translation/quaternion)."""
-        stamp_ns = int(stamp_ns)
         try:
             t, q = _check_pose(translation, quat_xyzw)
         except ValueError:
             return JointStatus.NON_FINITE
-        status = JointStatus.OK
-        if len(self):
-            last = self.last_stamp
-            if stamp_ns == last:
-                return JointStatus.DUPLICATE
-            if stamp_ns < last:
-                if last - stamp_ns <= self.jump_threshold_ns:
-                    return JointStatus.OUT_OF_ORDER
-                self.clear()
-                status = JointStatus.TIME_JUMP
-        if self._end == len(self._t):
-            keep = self.capacity - 1
-            for a in (self._t, self._p, self._q):
-                a[:keep] = a[self._end - keep:self._end]
-            self._start, self._end = 0, keep
-        self._t[self._end], self._p[self._end], self._q[self._end] = stamp_ns, t, q
-        self._end += 1
-        if self._end - self._start > self.capacity:
-            self._start += 1
-        return status
+        return self.push(stamp_ns, np.concatenate([t, q]))
 
     def lookup(self, stamps_ns):
         """Interpolate at several stamps: (statuses (M,) PairStatus, pose vectors (M, 7))."""
-        s = slice(self._start, self._end)
-        return _interpolate(self._t[s], self._p[s], self._q[s], stamps_ns, self.max_gap_ns)
+        rows = self.rows
+        return _interpolate(self.stamps, rows[:, :3], rows[:, 3:], stamps_ns, self.max_gap_ns)
 
 
 @dataclass
