@@ -384,24 +384,34 @@ class CalibrationEngine:
                            arrays.uv[sel])
         kw = dict(kinematics=kin if prior.model in KINEMATIC_MODELS + ('auto',) else None)
         specs_kept = [specs[j] for j in keep]
-        # Between searches, solve the chosen model with the image noise the search estimated.
-        solver = self.settings.solver
-        if not searching and self.settings.prior.model == 'auto' and self._auto_pixel_sigma:
-            solver = replace(solver, pixel_sigma=self._auto_pixel_sigma)
+        solver = self._solver_settings(searching)
         result = calibrate(specs_kept, arrays.points, obs, prior, solver,
                            initial=initial, **kw)
         if (result.adjustment is None or not np.all(np.isfinite(result.adjustment.covariance))) \
                 and initial is not None:
             # A warm start that failed may have been poisoned: try once from scratch.
             result = calibrate(specs_kept, arrays.points, obs, prior, solver, **kw)
-        if searching and result.selection is not None:
-            with self._lock:
-                self._auto_choice = result.selection.settings
-                self._auto_samples = n
-                self._auto_pixel_sigma = result.selection.pixel_sigma
-                self.auto_reason = result.selection.reason
+        if searching:
+            self._remember_auto_choice(result, n)
         outcome = self._judge(result, n, time.perf_counter() - t0)
         return self._finish(outcome)
+
+    def _solver_settings(self, searching):
+        """Between auto's searches, solve the chosen model with the image noise it estimated."""
+        solver = self.settings.solver
+        if not searching and self.settings.prior.model == 'auto' and self._auto_pixel_sigma:
+            solver = replace(solver, pixel_sigma=self._auto_pixel_sigma)
+        return solver
+
+    def _remember_auto_choice(self, result, n):
+        """After an auto search: keep its choice, sample count, image noise and reason."""
+        if result.selection is None:
+            return
+        with self._lock:
+            self._auto_choice = result.selection.settings
+            self._auto_samples = n
+            self._auto_pixel_sigma = result.selection.pixel_sigma
+            self.auto_reason = result.selection.reason
 
     def _board_problem(self, samples, specs):
         """Return the BoardData of ``samples`` over the cameras ``specs`` (index = position)."""
@@ -460,9 +470,7 @@ class CalibrationEngine:
         data = self._board_problem(samples, specs)
         if not len(data):
             return refuse('no board corners in the samples')
-        solver = self.settings.solver
-        if not searching and self.settings.prior.model == 'auto' and self._auto_pixel_sigma:
-            solver = replace(solver, pixel_sigma=self._auto_pixel_sigma)
+        solver = self._solver_settings(searching)
         try:
             res = calibrate_board(specs, data, prior, solver, T_link_target=seed,
                                   mount=MountSettings(estimate=board.estimate_mount),
@@ -470,12 +478,8 @@ class CalibrationEngine:
         except ValueError as exc:
             return refuse(f'board solve failed: {exc}')
         result = res.calibration
-        if searching and result.selection is not None:
-            with self._lock:
-                self._auto_choice = result.selection.settings
-                self._auto_samples = n
-                self._auto_pixel_sigma = result.selection.pixel_sigma
-                self.auto_reason = result.selection.reason
+        if searching:
+            self._remember_auto_choice(result, n)
         outcome = self._judge(result, n, time.perf_counter() - t0,
                               model=None if prior.model == 'auto' else res.model)
         if outcome.accepted:
