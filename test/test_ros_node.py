@@ -36,6 +36,7 @@ from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 
 from armcal_ros.io.calib_files import read_camera_info, read_cameras  # noqa: E402
 from armcal_ros.ros import conversions as conv  # noqa: E402
+from ros_test_env import isolated_ros_env  # noqa: E402
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 
@@ -148,18 +149,7 @@ def diag_values(records, name, after=0.0):
 
 @pytest.fixture(scope='module')
 def ros_env(tmp_path_factory):
-    keys = ('ROS_DOMAIN_ID', 'ROS_LOG_DIR', 'ROS_AUTOMATIC_DISCOVERY_RANGE')
-    saved = {k: os.environ.get(k) for k in keys}
-    os.environ['ROS_DOMAIN_ID'] = str(1 + os.getpid() % 200)
-    os.environ['ROS_LOG_DIR'] = str(tmp_path_factory.mktemp('ros_log'))
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    env = dict(os.environ, PYTHONUNBUFFERED='1')
-    yield env
-    for k, v in saved.items():
-        if v is None:
-            os.environ.pop(k, None)
-        else:
-            os.environ[k] = v
+    yield from isolated_ros_env(tmp_path_factory, domain_offset=0)
 
 
 @pytest.fixture(scope='module')

@@ -20,6 +20,7 @@ rclpy = pytest.importorskip('rclpy')
 from sensor_msgs.msg import CameraInfo  # noqa: E402
 
 from armcal_ros.io.calib_files import read_cameras  # noqa: E402
+from ros_test_env import isolated_ros_env  # noqa: E402
 from test_ros_node import Client, diag_values, Proc, start_node, wait_until  # noqa: E402
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
@@ -32,18 +33,7 @@ DURATION = 30.0
 
 @pytest.fixture(scope='module')
 def ros_env(tmp_path_factory):
-    """Own ROS domain, log directory and localhost discovery, as in test_ros_node.py."""
-    keys = ('ROS_DOMAIN_ID', 'ROS_LOG_DIR', 'ROS_AUTOMATIC_DISCOVERY_RANGE')
-    saved = {k: os.environ.get(k) for k in keys}
-    os.environ['ROS_DOMAIN_ID'] = str(1 + (os.getpid() + 101) % 200)
-    os.environ['ROS_LOG_DIR'] = str(tmp_path_factory.mktemp('ros_log'))
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    yield dict(os.environ, PYTHONUNBUFFERED='1')
-    for k, v in saved.items():
-        if v is None:
-            os.environ.pop(k, None)
-        else:
-            os.environ[k] = v
+    yield from isolated_ros_env(tmp_path_factory, domain_offset=101)
 
 
 @pytest.fixture(scope='module')
