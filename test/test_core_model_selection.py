@@ -7,8 +7,10 @@ import pytest
 from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.calibration import calibrate
 from armcal_ros.core.kinematic_prior import KinematicData
-from armcal_ros.core.model_selection import (_HeldOut, _occam_choice, _search_scale, Candidate,
-                                             DEFAULT_GRID, estimate_pixel_sigma, HOLDOUT_FOLDS,
+from armcal_ros.core.model_selection import (_HeldOut, _local_lengths, _occam_choice,
+                                             _search_scale, Candidate, DEFAULT_GRID,
+                                             estimate_pixel_sigma, HOLDOUT_FOLDS,
+                                             HYBRID_MAX_L_FRACTION,
                                              HOLDOUT_Z, OCCAM_MARGIN, SCALE_BOUNDS,
                                              SCALE_EXTENSIONS, SCALE_REFINEMENTS,
                                              SCALE_TOLERANCE, select_model)
@@ -155,6 +157,17 @@ def test_hybrid_search_contains_both_limits_and_kinematic_point_sigma_is_searche
     assert choice.settings.bias_sigma == 0 or choice.settings.kinematic_scale == 0 or \
         choice.log_evidence > max(kin.log_evidence, corr.log_evidence) + OCCAM_MARGIN
     assert sel.settings.model in ('kinematic', 'hybrid')
+
+
+@pytest.mark.parametrize('radius', [0.1, 0.3, 0.5])
+def test_hybrid_field_lengths_are_local_to_the_sampled_workspace(radius):
+    # The six points +-radius along each axis: RMS radius about their centroid exactly radius.
+    P = np.array([0.4, -0.2, 0.9]) + radius * np.vstack([np.eye(3), -np.eye(3)])
+    lengths = (0.05, 0.15, 0.3, 0.6, 1.2)
+    cap = HYBRID_MAX_L_FRACTION * radius
+    assert _local_lengths(lengths, P) == [L for L in lengths if L <= cap]
+    # a workspace smaller than every length still gets the shortest one
+    assert _local_lengths((10.0, 20.0), P) == [10.0]
 
 
 def _heldout_case(kinematics_of):
