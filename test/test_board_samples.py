@@ -27,7 +27,7 @@ from armcal_ros.io.calib_files import read_camera_info
 from armcal_ros.offline import calibrate_bag, collect_samples, run
 from armcal_ros.params import load_params_file
 from armcal_ros.robot.kinematics import KinematicChain
-from test_charuco_pose_bag import write_bag as write_pose_bag
+from test_charuco_pose_bag import view_poses, write_bag as write_pose_bag
 from test_rct_cli import BOARD, K, MOUNT, params, render, T_CAM_BASE
 
 URDF = '''<robot name="cartesian">
@@ -55,21 +55,6 @@ BOARD_PARAMS = dict(charuco_rows=7, charuco_cols=5, charuco_square_size=0.04,
 def ik(T):
     """Joint angles of the Cartesian robot for the link pose T: T(x, y, z) Rz Ry Rx."""
     return np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_euler('ZYX')])
-
-
-def view_poses(n_views, seed=0):
-    """Link poses that put the board 0.65-0.8 m in front of the camera, tilted up to 0.5 rad."""
-    rng = np.random.default_rng(seed)
-    centre = np.array([2.5 * 0.04, 3.5 * 0.04, 0.0])
-    out = []
-    for _ in range(n_views):
-        R = Rotation.from_rotvec(rng.uniform(-0.5, 0.5, 3)).as_matrix()
-        T_ct = np.eye(4)
-        T_ct[:3, :3] = R
-        T_ct[:3, 3] = np.array([rng.uniform(-0.05, 0.05), rng.uniform(-0.04, 0.04),
-                                rng.uniform(0.65, 0.8)]) - R @ centre
-        out.append(invert(T_CAM_BASE) @ T_ct @ invert(MOUNT))
-    return out
 
 
 def write_joint_bag(path, chain, n_views=8):

@@ -36,17 +36,23 @@ def test_pose_track_interpolates_and_judges_stillness():
         tr.add(1, [0, 0, 0], [0, 0, 0, 3])
 
 
-def write_bag(path, n_views=8, seed=0):
+def view_poses(n_views, seed=0):
+    """Link poses that put the board 0.65-0.8 m in front of the camera, tilted up to 0.5 rad."""
     rng = np.random.default_rng(seed)
     centre = np.array([2.5 * 0.04, 3.5 * 0.04, 0.0])
-    link = []
+    out = []
     for _ in range(n_views):
         R = Rotation.from_rotvec(rng.uniform(-0.5, 0.5, 3)).as_matrix()
         T_ct = np.eye(4)
         T_ct[:3, :3] = R
         T_ct[:3, 3] = np.array([rng.uniform(-0.05, 0.05), rng.uniform(-0.04, 0.04),
                                 rng.uniform(0.65, 0.8)]) - R @ centre
-        link.append(invert(T_CAM_BASE) @ T_ct @ invert(MOUNT))
+        out.append(invert(T_CAM_BASE) @ T_ct @ invert(MOUNT))
+    return out
+
+
+def write_bag(path, n_views=8, seed=0):
+    link = view_poses(n_views, seed)
     with BagWriter(path, storage='mcap') as w:
         types = w.typestore.types
         t = 1_000_000_000
