@@ -26,7 +26,8 @@ rclpy = pytest.importorskip('rclpy')
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
 from rcl_interfaces.srv import SetParameters  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor  # noqa: E402
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image, JointState  # noqa: E402
@@ -99,8 +100,21 @@ class Client:
         self.node = rclpy.create_node('armcal_test_client', context=self.ctx)
         self.executor = MultiThreadedExecutor(num_threads=2, context=self.ctx)
         self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
+
+    def _spin(self):
+        # Destroying a subscription or client from the test thread while the executor builds
+        # its wait set can raise InvalidHandle in the executor thread (an rclpy race); that
+        # killed the plain spin() once and every later call timed out.  Keep spinning.
+        while not self._stop.is_set() and self.ctx.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.1)
+            except _rclpy.InvalidHandle:
+                continue
+            except ExternalShutdownException:
+                return
 
     def record(self, mtype, topic, qos=LATCHED):
         """Subscribe; return the list every (receive time, message) is appended to."""
@@ -128,8 +142,9 @@ class Client:
         return self.call(SetParameters, '/armcal/set_parameters', req).results
 
     def close(self):
-        self.executor.shutdown(timeout_sec=5.0)
+        self._stop.set()
         self.thread.join(10.0)
+        self.executor.shutdown(timeout_sec=5.0)
         self.node.destroy_node()
         self.ctx.try_shutdown()
 
