@@ -186,7 +186,12 @@ def write_params(path, **values):
     import yaml
     base = dict(robot_description_file=os.path.join(ROOT, 'urdf', 'puma560.urdf'),
                 marker_link='marker', marker_offset=[0.0, 0.0, 0.0], solve_period=2.0,
-                min_samples=15)
+                min_samples=15,
+                # One continuous model: auto's discrete choice can differ between the node and
+                # the CLI when the node loses a dwell, and then the estimates need not agree to
+                # within one standard deviation (seen once in a fresh-clone run); auto itself is
+                # tested through the CLI (test_offline.py) and the engine (test_engine.py).
+                noise_model='correlated')
     base.update(values)
     with open(path, 'w') as f:
         yaml.safe_dump({'armcal': {'ros__parameters': base}}, f)
