@@ -19,13 +19,20 @@ def _add_simulate(p):
     p.add_argument('--output', required=True, metavar='BAG',
                    help='bag directory to create (must not exist); ground truth goes to '
                         'BAG/ground_truth/')
-    p.add_argument('--scenario', default='geometric', choices=sorted(SCENARIOS))
+    from armcal_ros.sim.cells import CELLS
+    p.add_argument('--cell', default='puma-3cam', choices=sorted(CELLS),
+                   help='arm, cameras and image transport: ' +
+                        '; '.join(f'{k}: {c.description}' for k, c in CELLS.items()))
+    p.add_argument('--scenario', default=None, choices=sorted(SCENARIOS),
+                   help='robot errors (default geometric, or the cell\'s)')
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--duration', type=float, default=60.0, help='seconds of teleoperation')
     p.add_argument('--storage', default='mcap', choices=['mcap', 'sqlite3'])
-    p.add_argument('--compressed', default=None, choices=['png', 'jpeg'],
-                   help='publish sensor_msgs/CompressedImage on /<cam>/image_raw/compressed')
-    p.add_argument('--encoding', default='mono8', choices=['mono8', 'rgb8', 'bgr8'])
+    p.add_argument('--compressed', default=None, choices=['none', 'png', 'jpeg'],
+                   help='publish sensor_msgs/CompressedImage on /<cam>/image_raw/compressed '
+                        '(default: the cell\'s transport)')
+    p.add_argument('--encoding', default=None, choices=['mono8', 'rgb8', 'bgr8'],
+                   help='image encoding (default: the cell\'s)')
     p.add_argument('--no-zstd', action='store_true', help='no zstd chunk compression (mcap)')
     p.add_argument('--quiet', action='store_true')
 
@@ -33,29 +40,44 @@ def _add_simulate(p):
 def _run_simulate(args):
     import os
 
+    import yaml
+
     from armcal_ros.sim.cell import simulate_cell
+    from armcal_ros.sim.cells import cell_parameters, get_cell
     from armcal_ros.sim.output import write_sim_bag
     if os.path.exists(args.output):
         raise ValueError(f'--output {args.output} exists already; choose a new bag directory')
     if args.duration <= 2.0:
         raise ValueError(f'--duration must be > 2 s, got {args.duration}')
-    result = simulate_cell(args.scenario, args.seed, args.duration)
+    cell = get_cell(args.cell)
+    scenario = args.scenario or cell.scenario
+    compressed = cell.compressed if args.compressed is None else \
+        (None if args.compressed == 'none' else args.compressed)
+    encoding = args.encoding or cell.encoding
+    settings = cell.sim_settings()
+    result = simulate_cell(scenario, args.seed, args.duration, settings)
 
     def progress(i, n):
         if not args.quiet:
             print(f'\r  writing {i}/{n} messages', end='', file=sys.stderr, flush=True)
 
     counts = write_sim_bag(result, args.output, storage=args.storage,
-                           compressed=args.compressed, encoding=args.encoding,
+                           compressed=compressed, encoding=encoding,
                            compress=not args.no_zstd, progress=progress)
+    params = os.path.join(args.output, 'ground_truth', 'params.yaml')
+    with open(params, 'w', encoding='utf-8') as f:
+        f.write(f'# calibrator parameters for this simulated cell ({args.cell}):\n'
+                f'#   armcal calibrate {args.output} --params {params}\n')
+        yaml.safe_dump({'armcal': {'ros__parameters': cell_parameters(settings, compressed)}},
+                       f, sort_keys=False)
     if not args.quiet:
         print('', file=sys.stderr)
         size = sum(os.path.getsize(os.path.join(d, f))
                    for d, _, fs in os.walk(args.output) for f in fs)
-        print(f'wrote {args.output}: scenario {args.scenario}, seed {args.seed}, '
+        print(f'wrote {args.output}: cell {args.cell}, scenario {scenario}, seed {args.seed}, '
               f'{len(result.dwells)} dwells, '
               + ', '.join(f'{t} {n}' for t, n in counts.items())
-              + f'; {size / 1e6:.1f} MB')
+              + f'; {size / 1e6:.1f} MB; calibrator parameters in {params}')
     return 0
 
 

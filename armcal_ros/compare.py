@@ -46,6 +46,11 @@ def format_comparison(score, estimated, truth):
         rows.append(f'{"":<8} {"est":<5} {e.fx:8.1f} {e.fy:8.1f} {e.cx:8.1f} {e.cy:8.1f} '
                     f'{e.dist[0]:8.4f} {per.get("focal_pct", float("nan")):11.3f} '
                     f'{per.get("centre_mm", float("nan")):13.2f}')
-    rows.append(f'triangulation of 500 fresh workspace points: {score.absolute_mm:.3f} mm '
-                f'absolute, {score.shape_mm:.3f} mm shape (after the best similarity)')
+    if np.isfinite(score.absolute_mm):
+        rows.append(f'triangulation of 500 fresh workspace points: {score.absolute_mm:.3f} mm '
+                    f'absolute, {score.shape_mm:.3f} mm shape (after the best similarity)')
+    else:
+        rows.append('one camera: no triangulation; see the projection error')
+    rows.append(f'projection of 500 fresh workspace points, estimated vs true camera: '
+                f'{score.reprojection_px:.3f} px RMS')
     return '\n'.join(rows)

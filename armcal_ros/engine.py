@@ -41,6 +41,7 @@ from armcal_ros.core.board_calibration import BoardData, calibrate_board, MountS
 from armcal_ros.core.calibration import calibrate, CalibrationResult, CameraSpec
 from armcal_ros.core.camera import Camera, skew
 from armcal_ros.core.kinematic_prior import KinematicData
+from armcal_ros.core.model_selection import pooled_pixel_sigma
 from armcal_ros.core.priors import KINEMATIC_MODELS, PriorSettings
 from armcal_ros.core.target import pose_matrix
 from armcal_ros.frontend.samples import BoardTarget
@@ -383,6 +384,9 @@ class CalibrationEngine:
         obs = Observations(remap[arrays.camera_index[sel]], arrays.point_index[sel],
                            arrays.uv[sel])
         kw = dict(kinematics=kin if prior.model in KINEMATIC_MODELS + ('auto',) else None)
+        if searching:
+            kw['pooled_sigma_px'] = pooled_pixel_sigma(arrays.spread_px[sel],
+                                                       arrays.n_frames[sel])
         specs_kept = [specs[j] for j in keep]
         solver = self._solver_settings(searching)
         result = calibrate(specs_kept, arrays.points, obs, prior, solver,

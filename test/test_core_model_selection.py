@@ -10,6 +10,7 @@ from armcal_ros.core.kinematic_prior import KinematicData
 from armcal_ros.core.model_selection import (_HeldOut, _local_lengths, _occam_choice,
                                              _search_scale, Candidate, DEFAULT_GRID,
                                              estimate_pixel_sigma, HOLDOUT_FOLDS,
+                                             pooled_pixel_sigma,
                                              HYBRID_MAX_L_FRACTION,
                                              HOLDOUT_Z, OCCAM_MARGIN, SCALE_BOUNDS,
                                              SCALE_EXTENSIONS, SCALE_REFINEMENTS,
@@ -93,6 +94,38 @@ def test_auto_uses_the_estimated_image_noise_not_the_configured_one():
                         holdout=False, estimate_noise=False,
                         grid={'coherence_length': (0.3,), 'bias_sigma': (1e-3,)})
     assert kept.pixel_sigma == 2.0 and kept.noise is None
+
+
+def test_pooled_scatter_recovers_the_noise_of_pooled_observations():
+    rng = np.random.default_rng(3)
+    sigma = 0.04
+    n = rng.integers(2, 20, 400)
+    spread = []
+    for k in n:
+        uv = rng.normal(0.0, sigma, (k, 2))
+        spread.append(np.sqrt(np.mean(np.sum((uv - uv.mean(axis=0)) ** 2, axis=1))))
+    expected = np.sqrt(np.mean(sigma ** 2 / n))
+    assert pooled_pixel_sigma(spread, n) == pytest.approx(expected, rel=0.05)
+    assert np.isnan(pooled_pixel_sigma([0.1, 0.2], [1, 1]))    # single frames: no scatter
+    with pytest.raises(ValueError, match='spread_px and n_frames'):
+        pooled_pixel_sigma([0.1, 0.2], [3])
+
+
+def test_one_camera_auto_takes_the_pooled_scatter_where_the_free_network_cannot():
+    prob = make_problem(150, 2, n_cameras=1, bias_sigma=1e-3, pixel_sigma=0.1)
+    s = SolverSettings(pixel_sigma=2.0)
+    cams, inl = _fixed(prob, s)
+    grid = {'coherence_length': (0.3,), 'bias_sigma': (1e-3,)}
+    alone = select_model(cams, prob.measured, prob.obs, PriorSettings(), s, inliers=inl,
+                         holdout=False, grid=grid)
+    assert not alone.noise.success and alone.pixel_sigma == 2.0      # no redundancy
+    assert alone.settings.model == 'fixed', alone.reason       # images drowned in 2 px
+    assert 'as configured' in alone.reason
+    sel = select_model(cams, prob.measured, prob.obs, PriorSettings(), s, inliers=inl,
+                       holdout=False, grid=grid, pooled_sigma_px=0.1)
+    assert sel.pixel_sigma == 0.1 and 'scatter of the pooled detections' in sel.reason
+    # with the images weighted by their real noise the field becomes visible to the evidence
+    assert sel.settings.model == 'correlated', sel.reason
 
 
 def _fake(evidence):

@@ -63,7 +63,8 @@ class CalibrationResult:
 def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
               prior: PriorSettings = None, settings: SolverSettings = None,
               initial: Optional[Dict[str, Camera]] = None, rng=None,
-              kinematics=None, globals_init=None, points_init=None) -> CalibrationResult:
+              kinematics=None, globals_init=None, points_init=None,
+              pooled_sigma_px=None) -> CalibrationResult:
     """
     Calibrate the cameras ``specs`` from robot points ``measured`` (N, 3) and observations.
 
@@ -75,7 +76,9 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
     adjusted points - new ones at their prediction - save most of the iterations).  With
     ``prior.model == 'auto'`` the model and its hyperparameters are chosen by
     :func:`~armcal_ros.core.model_selection.select_model` after the ``fixed`` stage
-    (``result.selection`` says what was chosen and why).
+    (``result.selection`` says what was chosen and why); ``pooled_sigma_px`` is its image
+    noise where the free network cannot estimate one
+    (:func:`~armcal_ros.core.model_selection.pooled_pixel_sigma`).
     """
     t0 = time.perf_counter()
     prior = (prior or PriorSettings()).validate()
@@ -130,7 +133,7 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
     if prior.model == 'auto':
         from armcal_ros.core.model_selection import select_model
         selection = select_model(cams, measured, sub, prior, model_settings, kinematics,
-                                 inliers, rng=rng)
+                                 inliers, rng=rng, pooled_sigma_px=pooled_sigma_px)
         final = selection.result
         stages.append((f'auto:{selection.settings.model}', final.cost, final.iterations,
                        selection.time_s))

@@ -146,12 +146,15 @@ def score_cameras(estimated: Dict[str, Camera], truth: Dict[str, Camera], test_p
     the RMS error after the best similarity fit (mm).  Camera-centre error is the RMS over cameras
     (mm) and focal error the mean over cameras of |f_est - f_true| / f_true over fx and fy (%).
     Reprojection is the RMS (px) of projecting the true points with the estimated cameras against
-    the true projections: a summary the images alone could measure.
+    the true projections: a summary the images alone could measure, and the only point-level
+    figure for a single camera (its absolute and shape errors are NaN: one view cannot
+    triangulate).
     """
     rng = rng if rng is not None else np.random.default_rng(12345)
     names = [k for k in truth if k in estimated]
-    if len(names) < 2:
-        raise ValueError(f'need at least two cameras in common to triangulate, got {names}')
+    if not names:
+        raise ValueError(f'estimated and truth have no camera in common: estimated '
+                         f'{sorted(estimated)}, truth {sorted(truth)}')
     P = np.asarray(test_points, float)
     uv_true = [truth[k].project(P) for k in names]
     inside = [(u[:, 0] >= 0) & (u[:, 0] < truth[k].width) & (u[:, 1] >= 0) &
@@ -161,8 +164,9 @@ def score_cameras(estimated: Dict[str, Camera], truth: Dict[str, Camera], test_p
         v = u + (rng.normal(0.0, pixel_noise, u.shape) if pixel_noise > 0 else 0.0)
         v[~m] = np.nan
         uv_obs.append(v)
-    X = triangulate([estimated[k] for k in names], uv_obs)
-    ok = np.all(np.isfinite(X), axis=1)
+    if len(names) >= 2:
+        X = triangulate([estimated[k] for k in names], uv_obs)
+        ok = np.all(np.isfinite(X), axis=1)
     per = {}
     reproj = []
     for k, u, m in zip(names, uv_true, inside):
@@ -175,5 +179,9 @@ def score_cameras(estimated: Dict[str, Camera], truth: Dict[str, Camera], test_p
     centre = float(np.sqrt(np.mean([v['centre_mm'] ** 2 for v in per.values()])))
     focal = float(np.mean([v['focal_pct'] for v in per.values()]))
     rp = np.concatenate(reproj)
-    return Score(1000.0 * absolute_error(X[ok], P[ok]), 1000.0 * shape_error(X[ok], P[ok]),
-                 centre, focal, float(np.sqrt(np.mean(rp ** 2))), per)
+    if len(names) >= 2:
+        absolute, shape = absolute_error(X[ok], P[ok]), shape_error(X[ok], P[ok])
+    else:
+        absolute = shape = float('nan')
+    return Score(1000.0 * absolute, 1000.0 * shape, centre, focal,
+                 float(np.sqrt(np.mean(rp ** 2))), per)

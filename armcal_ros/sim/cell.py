@@ -59,15 +59,20 @@ START_TIME_NS = 1_700_000_000 * 1_000_000_000
 OCCLUSION_NONE, OCCLUSION_LINK, OCCLUSION_RANDOM, OUTSIDE_IMAGE = 0, 1, 2, 3
 
 
-def default_urdf_path():
-    """Path of the bundled PUMA 560 URDF (source tree or installed share directory)."""
+def bundled_urdf(filename):
+    """Path of a URDF bundled with the package (source tree or installed share directory)."""
     here = os.path.dirname(os.path.abspath(__file__))
-    candidates = [os.path.join(here, '..', '..', 'urdf', 'puma560.urdf'),
-                  os.path.join(sys.prefix, 'share', 'armcal_ros', 'urdf', 'puma560.urdf')]
+    candidates = [os.path.join(here, '..', '..', 'urdf', filename),
+                  os.path.join(sys.prefix, 'share', 'armcal_ros', 'urdf', filename)]
     for c in candidates:
         if os.path.exists(c):
             return os.path.normpath(c)
-    raise FileNotFoundError(f'puma560.urdf not found in {candidates}')
+    raise FileNotFoundError(f'{filename} not found in {candidates}')
+
+
+def default_urdf_path():
+    """Path of the bundled PUMA 560 URDF, the simulator's default arm."""
+    return bundled_urdf('puma560.urdf')
 
 
 @dataclass

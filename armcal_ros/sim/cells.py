@@ -1,0 +1,95 @@
+"""
+Named cells for the simulator: arms, camera sets and image transports beyond the demo's.
+
+The calibrator must work in cells it has never seen, so the benchmarks and tests run it on
+several that differ from the demo in everything a user's cell can differ in (bench/cells.py):
+
+- ``puma-3cam``: the demo's cell (PUMA 560 by DH, cam1..cam3, raw mono8 images);
+- ``ur5-2cam``: a UR5 laid out as ur_description does it (rotated base, rpy joint origins,
+  fixed flange/tool0), two cameras ``left`` and ``right``, CompressedImage JPEG in colour;
+- ``desk-4cam``: a small desktop arm laid out in URDF style rather than by DH (pitch joints about
+  y, a continuous roll joint), a half-size workspace seen by four cameras at about 1 m
+  (``overhead``, ``front``, ``side_a``, ``side_b``), CompressedImage PNG mono;
+- ``puma-1cam-glints``: one camera (``wrist_view``), raw bgr8, forty times the default rate of
+  spurious highlights, half of them near the marker.
+
+Every cell publishes its joints in a random order with an extra gripper joint (as
+:func:`~armcal_ros.sim.cell.simulate_cell` always does).  A cell names only geometry and
+transport; the calibrator's own parameters for it come from :func:`cell_parameters` (the
+camera names, topics and URDF a user would write into their parameter file - nothing tuned).
+"""
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+from armcal_ros.sim.cell import bundled_urdf, default_urdf_path, SimSettings
+from armcal_ros.sim.output import image_topic
+
+
+@dataclass(frozen=True)
+class Cell:
+    """
+    A simulated cell: settings overrides, the default scenario and the image transport.
+
+    ``urdf`` is the file name of a URDF bundled with the package (``urdf/``).
+    """
+
+    description: str
+    urdf: str
+    settings: dict = field(default_factory=dict)
+    scenario: str = 'geometric'
+    compressed: Optional[str] = None     # None (sensor_msgs/Image), 'png' or 'jpeg'
+    encoding: str = 'mono8'
+
+    def sim_settings(self, **overrides) -> SimSettings:
+        """Return the SimSettings of this cell (``overrides`` replace fields)."""
+        return SimSettings(**{'urdf_path': bundled_urdf(self.urdf), **self.settings,
+                              **overrides})
+
+
+CELLS = {
+    'puma-3cam': Cell('PUMA 560 (DH), cam1..cam3, raw mono8 (the demo cell)',
+                      'puma560.urdf'),
+    'ur5-2cam': Cell('UR5 (ur_description layout), left/right, CompressedImage JPEG rgb8',
+                     'ur5.urdf', dict(joint_range_deg=None, camera_names=('left', 'right')),
+                     compressed='jpeg', encoding='rgb8'),
+    'desk-4cam': Cell('desktop arm (URDF-style axes, 0.5 m reach), 4 cameras at ~1 m, '
+                      'CompressedImage PNG mono8',
+                      'desk_arm6.urdf',
+                      dict(joint_range_deg=None, workspace_min=(0.12, -0.25, 0.05),
+                           workspace_max=(0.42, 0.25, 0.45), camera_distance=(0.8, 1.2),
+                           camera_height=(0.3, 0.7), link_radius=0.025,
+                           camera_names=('overhead', 'front', 'side_a', 'side_b')),
+                      scenario='mixed', compressed='png'),
+    'puma-1cam-glints': Cell('PUMA 560, one camera, raw bgr8, 2 spurious highlights per frame',
+                             'puma560.urdf',
+                             dict(camera_names=('wrist_view',),
+                                  sensor=dict(glint_rate=2.0, glint_near_marker=0.5)),
+                             scenario='nongeometric', encoding='bgr8'),
+}
+
+
+def get_cell(name) -> Cell:
+    """Return the cell ``name`` of :data:`CELLS` (ValueError naming the choices otherwise)."""
+    if name not in CELLS:
+        raise ValueError(f'cell must be one of {sorted(CELLS)}, got {name!r}')
+    return CELLS[name]
+
+
+def cell_parameters(settings: SimSettings, compressed=None, noise_model='auto') -> dict:
+    """
+    Return the calibrator parameters (``ros__parameters``) matching a simulated cell.
+
+    Only what describes the cell: URDF, marker link, joint-state and image topics, camera
+    names; everything else keeps the node's defaults.
+    """
+    urdf = settings.urdf_path or default_urdf_path()
+    names = list(settings.camera_names)
+    return dict(robot_description_file=urdf, base_frame=settings.base_frame,
+                marker_link=settings.marker_link, marker_offset=list(settings.marker_offset),
+                marker_type='sphere', joint_states_topic='/joint_states',
+                camera_names=names, image_topics=[image_topic(n, compressed) for n in names],
+                noise_model=noise_model)
+
+
+__all__ = ['Cell', 'CELLS', 'cell_parameters', 'get_cell']
