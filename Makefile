@@ -30,6 +30,7 @@ bench: $(STAMP)
 	$(PY) bench/bias.py
 	$(PY) bench/pipeline.py
 	$(PY) bench/bag_accuracy.py
+	$(PY) bench/cells.py
 	$(PY) bench/node.py
 	$(PY) bench/real_data.py
 

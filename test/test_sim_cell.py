@@ -1,11 +1,14 @@
 """The simulated cell: truth consistency, rendering geometry, timing and scenarios."""
 
+import os
+
 import numpy as np
 import pytest
 
 from armcal_ros.sim.cell import (
     link_occluded, OCCLUSION_NONE, SCENARIOS, simulate_cell, SimSettings,
 )
+from armcal_ros.sim.cells import cell_parameters, CELLS, get_cell
 from armcal_ros.sim.render import (
     marker_signal, SensorModel, sphere_coverage, sphere_image_offset,
 )
@@ -148,3 +151,18 @@ def test_min_jerk_and_link_occlusion(cell):
     assert link_occluded(chain, q, x, behind, 0.035, 0.02)[0]
     beside = x[0] + np.cross(wrist - x[0], [0, 0, 1.0]) * 30
     assert not link_occluded(chain, q, x, beside, 0.035, 0.02)[0]
+
+
+def test_named_cells_simulate_and_describe_themselves_to_the_calibrator():
+    for name, c in CELLS.items():
+        s = c.sim_settings()
+        r = simulate_cell(c.scenario, seed=0, duration=6.0, settings=s)
+        assert [cam.name for cam in r.cameras] == list(s.camera_names), name
+        assert sorted(r.joint_names) == sorted(list(r.chain.joint_names) + list(s.extra_joints))
+        p = cell_parameters(s, c.compressed)
+        suffix = '/compressed' if c.compressed else ''
+        assert p['camera_names'] == list(s.camera_names)
+        assert p['image_topics'] == [f'/{n}/image_raw{suffix}' for n in s.camera_names]
+        assert os.path.exists(p['robot_description_file'])
+    with pytest.raises(ValueError, match='cell must be one of'):
+        get_cell('nope')
