@@ -166,3 +166,22 @@ def test_named_cells_simulate_and_describe_themselves_to_the_calibrator():
         assert os.path.exists(p['robot_description_file'])
     with pytest.raises(ValueError, match='cell must be one of'):
         get_cell('nope')
+
+
+def test_dh_error_model_keeps_the_draws_on_dh_components_only():
+    from armcal_ros.sim.true_robot import draw_geometric_errors
+    chain = simulate_cell('geometric', seed=0, duration=3.0).chain
+    full = draw_geometric_errors(chain, np.random.default_rng(5))
+    dh = draw_geometric_errors(chain, np.random.default_rng(5), model='dh')
+    for name, a, b in zip(chain.error_names, full, dh):
+        joint, comp = name.rsplit('/', 1)
+        if joint == chain.joint_names[0]:
+            expected = a if comp == 'offset' else 0.0       # the base frame is DH frame 0
+        elif joint in chain.joint_names:
+            expected = a if comp in ('offset', 'tx', 'tz', 'rx') else 0.0    # theta, a, d, alpha
+        else:
+            expected = a                                   # the marker mount
+        assert b == expected, name
+    assert np.count_nonzero(dh) == 6 + 5 * 3 + 3
+    with pytest.raises(ValueError, match='error_model must be one of'):
+        SimSettings(error_model='hayati')

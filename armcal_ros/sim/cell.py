@@ -44,7 +44,7 @@ from armcal_ros.sim.cameras import ring_of_cameras
 from armcal_ros.sim.render import expose, glint_patches, marker_signal, SensorModel
 from armcal_ros.sim.trajectory import teleop_trajectory, Trajectory
 from armcal_ros.sim.true_robot import (
-    draw_compliance, draw_geometric_errors, draw_periodic, TrueRobot,
+    draw_compliance, draw_geometric_errors, draw_periodic, ERROR_MODELS, TrueRobot,
 )
 
 #: name -> (geometric, non-geometric, bias field (sigma m, coherence m) or None)
@@ -117,7 +117,8 @@ class SimSettings:
     occlusion_clearance: float = 0.02
     occlusion_rate: float = 1.0 / 40.0      # random spans per second per camera
     occlusion_duration: tuple = (0.3, 1.5)
-    # robot errors (see true_robot)
+    # robot errors (see true_robot; error_model 'joint-origin' or 'dh')
+    error_model: str = 'joint-origin'
     offset_deg: float = 0.05
     translation_mm: float = 0.3
     rotation_deg: float = 0.03
@@ -133,6 +134,9 @@ class SimSettings:
             raise ValueError(f'duration must be > 2 s, got {self.duration}')
         if self.camera_rate <= 0 or self.joint_rate <= 0:
             raise ValueError('camera_rate and joint_rate must be > 0')
+        if self.error_model not in ERROR_MODELS:
+            raise ValueError(f'error_model must be one of {ERROR_MODELS}, '
+                             f'got {self.error_model!r}')
         if len(self.camera_names) < 1:
             raise ValueError('camera_names must name at least one camera')
 
@@ -314,7 +318,7 @@ def _build_robot(chain, scenario, rng, s: SimSettings, q_sample):
     amp, phase, compliance = np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n)
     # always draw everything in the same order so scenarios with the same seed share draws
     e = draw_geometric_errors(chain, rng, s.offset_deg, s.translation_mm, s.rotation_deg,
-                              s.tip_translation_mm)
+                              s.tip_translation_mm, s.error_model)
     a, p = draw_periodic(chain, rng, s.periodic_deg)
     c = draw_compliance(chain, rng, q_sample, s.compliance_deg)
     field_rng = np.random.default_rng(rng.integers(2 ** 63))

@@ -51,7 +51,7 @@ def build_true_robot(chain, scenario, rng, s: SimSettings, q_sample, field=None)
         field_spec = field
     n = chain.n_joints
     e = draw_geometric_errors(chain, rng, s.offset_deg, s.translation_mm, s.rotation_deg,
-                              s.tip_translation_mm)
+                              s.tip_translation_mm, s.error_model)
     a, p = draw_periodic(chain, rng, s.periodic_deg)
     c = draw_compliance(chain, rng, q_sample, s.compliance_deg)
     field_rng = np.random.default_rng(rng.integers(2 ** 63))

@@ -18,6 +18,13 @@ Calibration", 1991; Corke and Armstrong-Helouvry's PUMA 560 survey):
   0.3 mm per axis (machining and assembly tolerances of link lengths and offsets), origin
   rotations of 0.03 deg per axis (twist and parallelism errors of the joint axes); and the
   marker mount (the tip block) 0.2 mm per axis, as a turned adapter on the flange would be.
+  That is error model ``joint-origin`` (the default, :data:`ERROR_MODELS`).  Model ``dh`` is
+  the prototype's of DESIGN.md section 3 (Denavit-Hartenberg errors: per joint an angle offset,
+  link-length errors of a and d, and a twist error of alpha): for a URDF written from standard
+  DH, where joint i+1's origin in link i is Tz(d_i) Tx(a_i) Rx(alpha_i) (the bundled PUMA 560),
+  these are the origin's x and z translations and its x rotation; the first joint's origin is
+  the base frame itself (DH frame 0) and carries no error.  Its draws are those of
+  ``joint-origin`` with the other components set to zero, so a seed gives the same cell.
 - periodic joint-angle errors: per joint a sum of a one-cycle-per-revolution term (gear or
   encoder eccentricity) and a two-cycles term (encoder ellipticity, harmonic-drive
   kinematic error), dq = A1 sin(q + phi1) + A2 sin(2 q + phi2), amplitudes uniform in
@@ -133,12 +140,36 @@ class TrueRobot:
         }
 
 
-def draw_geometric_errors(chain, rng, offset_deg=0.05, translation_mm=0.3, rotation_deg=0.03,
-                          tip_translation_mm=0.2):
-    """Draw a geometric error vector (Gaussian, the given standard deviations)."""
+#: Geometric error models of the simulator (module docstring).
+ERROR_MODELS = ('joint-origin', 'dh')
+#: Joint-origin error components the ``dh`` model draws (besides the joint's angle offset).
+DH_FIELDS = ('offset', 'tx', 'tz', 'rx')
+
+
+def geometric_error_sigmas(chain, offset_deg=0.05, translation_mm=0.3, rotation_deg=0.03,
+                           tip_translation_mm=0.2, model='joint-origin'):
+    """Return the standard deviations of the chain's geometric errors under ``model``."""
+    if model not in ERROR_MODELS:
+        raise ValueError(f'error model must be one of {ERROR_MODELS}, got {model!r}')
     sigma = chain.error_vector(offset=offset_deg * DEG, translation=translation_mm * 1e-3,
                                rotation=rotation_deg * DEG,
                                tip_translation=tip_translation_mm * 1e-3, tip_rotation=0.0)
+    if model == 'dh':
+        first = chain.joint_names[0]
+        for i, name in enumerate(chain.error_names):
+            joint, comp = name.rsplit('/', 1)
+            if joint in chain.joint_names and comp not in DH_FIELDS:
+                sigma[i] = 0.0
+            elif joint == first and comp != 'offset':
+                sigma[i] = 0.0
+    return sigma
+
+
+def draw_geometric_errors(chain, rng, offset_deg=0.05, translation_mm=0.3, rotation_deg=0.03,
+                          tip_translation_mm=0.2, model='joint-origin'):
+    """Draw a geometric error vector (Gaussian, :func:`geometric_error_sigmas`)."""
+    sigma = geometric_error_sigmas(chain, offset_deg, translation_mm, rotation_deg,
+                                   tip_translation_mm, model)
     return rng.standard_normal(chain.n_errors) * sigma
 
 
