@@ -156,6 +156,11 @@ PARAMS = [
           _positive, minimum=0.0),
     Param('sphere_max_radius_px', 'double', 40.0, 'largest sphere image radius, pixels',
           _positive, minimum=0.0),
+    Param('sphere_static_scene', 'bool', True,
+          'learn each camera\'s static scene (median of five images kept as the marker moves) '
+          'and subtract it before the sphere search: clutter and static look-alikes (lamps, '
+          'bolt heads) vanish; a marker parked for about 120 images becomes scenery until it '
+          'moves'),
     Param('aruco_dictionary', 'string', 'DICT_4X4_50', 'ArUco dictionary (cv2.aruco name)'),
     Param('aruco_id', 'int', -1, 'ArUco id of the marker (-1: any)'),
     Param('publish_tf', 'bool', True, 'publish static TF base_frame -> <camera>_optical_frame'),

@@ -56,7 +56,8 @@ def make_detectors(values, camera_names, board: Optional[CharucoBoard] = None):
             out[name] = CharucoDetector(board)
         elif values['marker_type'] == 'sphere':
             out[name] = make_detector('sphere', min_radius_px=values['sphere_min_radius_px'],
-                                      max_radius_px=values['sphere_max_radius_px'])
+                                      max_radius_px=values['sphere_max_radius_px'],
+                                      static_scene=values['sphere_static_scene'])
         else:
             mid = values['aruco_id']
             out[name] = make_detector('aruco', dictionary=values['aruco_dictionary'],

@@ -281,3 +281,73 @@ def test_sphere_on_the_simulators_frames():
     assert len(errors) >= 0.95 * visible
     assert wrong == 0
     assert np.median(errors) < 0.05
+
+
+def _cluttered_scene(rng):
+    """A static scene: shaded boxes and discs plus three marker look-alikes brighter than it."""
+    scene = np.full(SHAPE, 50.0)
+    for _ in range(30):
+        x, y = rng.integers(0, 600), rng.integers(0, 440)
+        scene[y:y + rng.integers(10, 80), x:x + rng.integers(10, 80)] = rng.uniform(0, 110)
+    for c in ((120.0, 90.0), (400.0, 380.0), (560.0, 200.0)):
+        scene = render_sphere(c, 6.0, amp=230, bg=0.0, image=scene)
+    return scene
+
+
+def _dwells(rng, n_dwells, frames_per_dwell, radius=5.0):
+    """Marker positions: one per dwell, spread over the image."""
+    return [rng.uniform([60, 60], [580, 420]) for _ in range(n_dwells)], frames_per_dwell
+
+
+def test_static_look_alikes_and_clutter_are_ignored_once_the_scene_is_known(rng):
+    scene = _cluttered_scene(rng)
+    spots, per = _dwells(rng, 12, 10)
+    on, off = SphereDetector(), SphereDetector(static_scene=False)
+    hits = {'on': [], 'off': []}
+    for k, centre in enumerate(spots):
+        view = np.maximum(scene, render_sphere(centre, 5.0, amp=160, bg=0.0))  # it occludes
+        for _ in range(per):
+            img = quantise(view, rng, noise=2.0)
+            for name, det in (('on', on), ('off', off)):
+                d = det.detect(img)
+                ok = len(d) == 1 and np.linalg.norm(d[0].uv - centre) < 0.5
+                wrong = len(d) == 1 and not ok
+                if k >= 4:          # the scene is known after 33 images
+                    hits[name].append((ok, wrong))
+    ok_on = np.mean([h[0] for h in hits['on']])
+    assert ok_on > 0.95 and not any(h[1] for h in hits['on'])
+    # the same images without the scene: a look-alike outshines the marker
+    assert np.mean([h[0] for h in hits['off']]) < 0.5
+
+
+def test_a_dwelling_marker_stays_out_of_the_scene(rng):
+    # Dwells of 100 images (longer than the keep interval): the marker must not become
+    # scenery, and subtracting a black scene must not move the centroid.
+    # The scene is a median of five noisy images: subtracting it adds its noise (~0.5 of the
+    # image's) to the centroid weights, ~0.005 px here; a marker in the median left a crescent
+    # whose centroid was off by tenths of a pixel.
+    spots, per = _dwells(rng, 3, 100)
+    on, off = SphereDetector(), SphereDetector(static_scene=False)
+    for centre in spots:
+        clean = render_sphere(centre, 4.0, amp=150, bg=3.0)
+        for _ in range(per):
+            img = quantise(clean, rng, noise=1.0)
+            a, b = on.detect(img), off.detect(img)
+            assert len(a) == 1 and len(b) == 1
+            assert np.linalg.norm(a[0].uv - b[0].uv) < 0.02
+    assert on._scene is not None
+
+
+def test_a_parked_marker_becomes_scenery_and_is_missed_not_mistaken(rng):
+    centre = (300.0, 200.0)
+    det = SphereDetector()
+    statuses = []
+    clean = render_sphere(centre, 4.0, amp=150, bg=3.0)
+    for _ in range(2 * SphereDetector.SCENE_FORCE * SphereDetector.SCENE_EVERY):
+        d = det.detect(quantise(clean, rng, noise=1.0))
+        assert not d or np.linalg.norm(d[0].uv - centre) < 0.2
+        statuses.append(bool(d))
+    assert statuses[0] and not statuses[-1]
+    # once it moves it is found again
+    d = det.detect(quantise(render_sphere((420.0, 300.0), 4.0, amp=150, bg=3.0), rng, noise=1.0))
+    assert len(d) == 1 and np.linalg.norm(d[0].uv - (420.0, 300.0)) < 0.2

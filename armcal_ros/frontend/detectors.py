@@ -146,15 +146,36 @@ class SphereDetector(Detector):
     ``quality = roundness * max(0, 1 - competitor_score / chosen_score)`` (1 for a perfectly
     round, unique blob; near 0 when a comparable competitor was set aside by tracking).
 
-    Sub-pixel accuracy comes from the background-subtracted intensity-weighted centroid:
-    ~0.01 px on rendered spheres with a few DN of noise, 0.007 px median on the simulator's
-    frames.
+    Static scene (``static_scene``, on by default): a camera exposed for the cell rather than
+    for the marker sees clutter, and some of it looks like the marker (indicator lamps,
+    polished bolt heads, round labels) - by steps 1-5 alone such a spot is a sphere, it may
+    outshine the marker, and tracking would then lock on to it.  What gives it away is that it
+    never moves, while the marker is carried from dwell to dwell.  So images are kept (every
+    ``SCENE_EVERY_FIRST``-th until ``SCENE_FRAMES`` are, then every ``SCENE_EVERY``-th), the
+    pixelwise median of the last ``SCENE_FRAMES`` kept is the static scene, and once it is
+    known it is subtracted (saturating at zero) before step 1: look-alikes and clutter vanish,
+    and the marker, which hides what is behind it, stands on a background near zero.  A due
+    image is kept only if the marker was not found in it or has moved since the last kept one
+    (by two radii), so a dwelling or slowly moving marker does not enter the median - where
+    it did (an earlier version kept every due image) its subtraction left a crescent with a
+    biased centroid (measured on the demo bag: recall 95.8 % against 99.97 %, 99th-percentile
+    pooled error 0.21 against 0.064 px).  After ``SCENE_FORCE`` intervals without a kept
+    image one is kept anyway: a marker parked that long becomes scenery until it moves
+    (missed, never mistaken), and a lock on a look-alike taken before the scene was known
+    (the first ~33 images of a camera are searched as they are) is broken.
     """
+
+    #: Images kept for the static scene, how often one is kept (while it is learnt, then
+    #: after), and after how many intervals one is kept even if the marker has not moved.
+    SCENE_FRAMES = 5
+    SCENE_EVERY_FIRST = 8
+    SCENE_EVERY = 30
+    SCENE_FORCE = 4
 
     def __init__(self, min_radius_px=1.5, max_radius_px=40.0, blur_sigma_px=1.0, k_sigma=6.0,
                  min_contrast=0.03, min_roundness=0.7, ambiguity_ratio=0.5,
                  search_window_px=48.0, track_radius_px=3.0, white_level=None,
-                 max_candidates=32):
+                 max_candidates=32, static_scene=True):
         self.min_radius_px = _check_positive('min_radius_px', min_radius_px)
         self.max_radius_px = _check_positive('max_radius_px', max_radius_px)
         if self.max_radius_px <= self.min_radius_px:
@@ -175,6 +196,14 @@ class SphereDetector(Detector):
         if int(max_candidates) != max_candidates or max_candidates < 2:
             raise ValueError(f'max_candidates must be an integer >= 2, got {max_candidates!r}')
         self.max_candidates = int(max_candidates)
+        if not isinstance(static_scene, (bool, np.bool_)):
+            raise ValueError(f'static_scene must be True or False, got {static_scene!r}')
+        self.static_scene = bool(static_scene)
+        self._scene_frames = []
+        self._scene = None
+        self._calls = 0
+        self._last_keep = -10 ** 9
+        self._kept_uv = None
         # Standard deviation of white noise after a Gaussian blur of sigma b is s / (2 b sqrt(pi)).
         self._blur_noise_gain = min(1.0, 1.0 / (2.0 * self.blur_sigma_px * math.sqrt(math.pi)))
         self._margin = int(math.ceil(3 * self.blur_sigma_px)) + 1
@@ -187,13 +216,51 @@ class SphereDetector(Detector):
         self.last_status = 'none'
 
     def reset(self):
-        """Forget the tracked position."""
+        """Forget the tracked position (the static scene is the camera's and is kept)."""
         self.last_uv = None
         self.last_radius = None
 
+    def _keep_for_scene(self, gray, det):
+        """
+        Keep ``gray`` for the static scene when due (class docstring).
+
+        ``det`` is this image's detection or None.  A due image is kept only if the marker was
+        not found or has moved since the last kept image, so that a dwelling marker does not
+        enter the scene; if none was kept for ``SCENE_FORCE`` x the interval, one is kept
+        anyway (what a lock on a look-alike looks like, or a marker parked for long).
+        """
+        if not self.static_scene:
+            return
+        if self._scene_frames and self._scene_frames[-1].shape != gray.shape:
+            self._scene_frames, self._scene = [], None          # the camera's size changed
+        self._calls += 1
+        known = len(self._scene_frames) == self.SCENE_FRAMES
+        every = self.SCENE_EVERY if known else self.SCENE_EVERY_FIRST
+        if self._calls < self._last_keep + every:
+            return
+        uv = None if det is None else det.uv
+        moved = uv is None or self._kept_uv is None or \
+            np.hypot(*(uv - self._kept_uv)) > max(4.0, 2.0 * det.radius_px)
+        if not moved and self._calls < self._last_keep + self.SCENE_FORCE * every:
+            return
+        self._scene_frames = (self._scene_frames + [gray.copy()])[-self.SCENE_FRAMES:]
+        self._kept_uv = None if uv is None else uv.copy()
+        self._last_keep = self._calls
+        if len(self._scene_frames) == self.SCENE_FRAMES:
+            self._scene = _median_of_five(self._scene_frames)
+
     def detect(self, image):
         """Return [] or one :class:`Detection` (id 0) of the sphere in ``image``."""
-        gray = to_gray(image)
+        raw = to_gray(image)
+        gray = raw
+        if self._scene is not None and self._scene.shape == raw.shape:
+            gray = cv2.subtract(raw, self._scene) if raw.dtype in (np.uint8, np.uint16) else \
+                np.clip(raw - self._scene, 0, None)
+        dets = self._detect(gray)
+        self._keep_for_scene(raw, dets[0] if dets else None)
+        return dets
+
+    def _detect(self, gray):
         white = self.white_level or _white_level(gray.dtype)
         h, w = gray.shape
         if self.last_uv is not None and self.search_window_px > 0:
@@ -360,6 +427,19 @@ class SphereDetector(Detector):
         edge = any(touches)
         return _Candidate(uv=np.array([cu + rx0, cv + ry0]), radius=radius, roundness=roundness,
                           flux=flux, touches_edge=edge)
+
+
+def _median_of_five(frames):
+    """
+    Pixelwise median of five equal-shape images.
+
+    A 9-comparator sorting network of cv2.min/cv2.max (about 1 ms for five 640 x 480 8-bit
+    images, against 40 ms for numpy.median over the stack); the middle element is the median.
+    """
+    v = [np.ascontiguousarray(f) for f in frames]
+    for i, j in ((0, 1), (3, 4), (2, 4), (2, 3), (0, 3), (0, 2), (1, 4), (1, 3), (1, 2)):
+        v[i], v[j] = cv2.min(v[i], v[j]), cv2.max(v[i], v[j])
+    return v[2]
 
 
 _ARUCO_PREFIX = 'DICT_'

@@ -41,7 +41,8 @@ import numpy as np
 
 from armcal_ros.sim.bias_field import FourierBiasField
 from armcal_ros.sim.cameras import ring_of_cameras
-from armcal_ros.sim.render import expose, glint_patches, marker_signal, SensorModel
+from armcal_ros.sim.render import (clutter_scene, expose, glint_patches, marker_signal,
+                                   SensorModel)
 from armcal_ros.sim.trajectory import teleop_trajectory, Trajectory
 from armcal_ros.sim.true_robot import (
     draw_compliance, draw_geometric_errors, draw_periodic, ERROR_MODELS, TrueRobot,
@@ -255,7 +256,20 @@ class SimResult:
         if clean:
             sensor = SensorModel(**{**asdict(sensor), 'read_noise': 0.0, 'gain': 1e9,
                                     'glint_rate': 0.0})
-        return expose(cam, patches, rng, sensor, encoding)
+        background = None
+        if not clean and (sensor.clutter_level > 0 or sensor.clutter_spots > 0):
+            background = self._clutter(int(f.camera[i]), sensor)
+        return expose(cam, patches, rng, sensor, encoding, background)
+
+    def _clutter(self, j, sensor):
+        """The static scene behind camera ``j`` (drawn once per camera and sensor)."""
+        cache = self.__dict__.setdefault('_clutter_cache', {})
+        key = (j, sensor.clutter_level, sensor.clutter_spots, sensor.peak)
+        if key not in cache:
+            cam = self.cameras[j]
+            cache[key] = clutter_scene(cam.width, cam.height, sensor,
+                                       np.random.default_rng([self.seed, 2027, j]))
+        return cache[key]
 
     @property
     def _focus(self):

@@ -10,6 +10,8 @@ several that differ from the demo in everything a user's cell can differ in (ben
 - ``desk-4cam``: a small desktop arm laid out in URDF style rather than by DH (pitch joints about
   y, a continuous roll joint), a half-size workspace seen by four cameras at about 1 m
   (``overhead``, ``front``, ``side_a``, ``side_b``), CompressedImage PNG mono;
+- ``puma-3cam-clutter``: the demo's arm and cameras, but exposed for the scene: a cluttered
+  static background and six static round spots per camera as bright as the marker;
 - ``puma-1cam-glints``: one camera (``wrist_view``), raw bgr8, forty times the default rate of
   spurious highlights, half of them near the marker.
 
@@ -61,6 +63,10 @@ CELLS = {
                            camera_height=(0.3, 0.7), link_radius=0.025,
                            camera_names=('overhead', 'front', 'side_a', 'side_b')),
                       scenario='mixed', compressed='png'),
+    'puma-3cam-clutter': Cell('PUMA 560, cam1..cam3 exposed for the scene: a cluttered '
+                              'background and 6 static marker look-alikes per camera',
+                              'puma560.urdf',
+                              dict(sensor=dict(clutter_level=60.0, clutter_spots=6))),
     'puma-1cam-glints': Cell('PUMA 560, one camera, raw bgr8, 2 spurious highlights per frame',
                              'puma560.urdf',
                              dict(camera_names=('wrist_view',),

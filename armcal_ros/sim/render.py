@@ -38,6 +38,13 @@ level with probability 1 - 2 Q(0.5 / 0.06) ~ 1 - 1e-16: the model therefore adds
 only where there is signal when ``read_noise`` < 0.1 DN (identical in distribution to that
 precision), and everywhere otherwise.  Spurious highlights (glints off the arm) are small
 Gaussian specks of random brightness, now and then close to the marker.
+
+Clutter (off by default): a camera exposed for the scene rather than for the marker sees the
+cell behind it.  ``clutter_level`` > 0 gives each camera a static scene (:func:`clutter_scene`):
+shaded surfaces, boxes, discs and bars of random brightness around that level, with sharp
+edges; ``clutter_spots`` adds static round bright spots the size and brightness of the
+marker (indicator lamps, polished bolt heads) - look-alikes only their stillness gives away.
+Shot and read noise then apply to every pixel.
 """
 
 from dataclasses import dataclass
@@ -65,13 +72,15 @@ class SensorModel:
     glint_rate: float = 0.05        # expected spurious highlights per frame
     glint_near_marker: float = 0.3  # fraction of glints within 40 px of the marker
     colour_gains: tuple = (1.0, 0.95, 0.85)   # R, G, B response to the (white) LED
+    clutter_level: float = 0.0      # DN, mean brightness of a static scene (0: black)
+    clutter_spots: int = 0          # static marker look-alikes per camera
 
     def __post_init__(self):
         for name in ('peak', 'gain', 'exposure'):
             if getattr(self, name) <= 0:
                 raise ValueError(f'{name} must be > 0, got {getattr(self, name)}')
         for name in ('black_level', 'read_noise', 'defocus_sigma', 'defocus_slope',
-                     'glint_rate'):
+                     'glint_rate', 'clutter_level', 'clutter_spots'):
             if getattr(self, name) < 0:
                 raise ValueError(f'{name} must be >= 0, got {getattr(self, name)}')
         if int(self.supersample) < 1 or int(self.motion_samples) < 1:
@@ -202,12 +211,48 @@ def glint_patches(cam, rng, sensor: SensorModel, near_uv=None):
     return out
 
 
-def expose(cam, patches, rng, sensor: SensorModel, encoding='mono8'):
+def clutter_scene(width, height, sensor: SensorModel, rng):
+    """
+    Return a static cluttered scene (height, width) in DN for one camera (module docstring).
+
+    Shaded background at 0.5-1 x ``clutter_level``; 40 boxes, 20 discs and 20 bars (up to
+    400 px long) of brightness uniform in [0, 2 x ``clutter_level``]; ``clutter_spots`` discs of radius 2-8 px
+    at 0.6-1.1 x the marker's ``peak`` with a soft edge like the marker's blur.
+    """
+    level = float(sensor.clutter_level)
+    v, u = np.mgrid[0:height, 0:width].astype(float)
+    a, b = rng.uniform(-1, 1, 2)
+    scene = level * (0.75 + 0.25 * (a * (u / width - 0.5) + b * (v / height - 0.5)))
+    for _ in range(40):
+        u0, v0 = rng.uniform(0, width), rng.uniform(0, height)
+        w, h = rng.uniform(10, 150, 2)
+        scene[(abs(u - u0) < w / 2) & (abs(v - v0) < h / 2)] = rng.uniform(0, 2 * level)
+    for _ in range(20):
+        u0, v0, r = rng.uniform(0, width), rng.uniform(0, height), rng.uniform(4, 40)
+        scene[(u - u0) ** 2 + (v - v0) ** 2 < r * r] = rng.uniform(0, 2 * level)
+    for _ in range(20):
+        t, u0, v0 = rng.uniform(0, np.pi), rng.uniform(0, width), rng.uniform(0, height)
+        along = (u - u0) * np.cos(t) + (v - v0) * np.sin(t)
+        across = (u - u0) * np.sin(t) - (v - v0) * np.cos(t)
+        bar = (abs(across) < rng.uniform(1, 4)) & (abs(along) < rng.uniform(20, 200))
+        scene[bar] = rng.uniform(0, 2 * level)
+    scene = gaussian_filter(scene, 0.7)
+    for _ in range(int(sensor.clutter_spots)):
+        u0, v0 = rng.uniform(20, width - 20), rng.uniform(20, height - 20)
+        r, peak = rng.uniform(2, 8), rng.uniform(0.6, 1.1) * sensor.peak
+        disc = np.clip(r + 0.5 - np.hypot(u - u0, v - v0), 0, 1)
+        scene = np.maximum(scene, gaussian_filter(disc, sensor.defocus_sigma) * peak)
+    return np.clip(scene, 0, 250)
+
+
+def expose(cam, patches, rng, sensor: SensorModel, encoding='mono8', background=None):
     """
     Turn signal patches [(u0, v0, DN)] into an 8-bit image with shot and read noise.
 
     ``encoding`` is mono8, rgb8 or bgr8 (colour: the same signal through ``colour_gains``,
-    independent noise per channel).
+    independent noise per channel).  ``background`` (H, W) DN is a static scene behind the
+    patches (:func:`clutter_scene`; each pixel shows the brighter of the two); with it every
+    pixel gets shot and read noise.
     """
     if encoding not in ('mono8', 'rgb8', 'bgr8'):
         raise ValueError(f'encoding must be mono8, rgb8 or bgr8, got {encoding!r}')
@@ -215,7 +260,7 @@ def expose(cam, patches, rng, sensor: SensorModel, encoding='mono8'):
     if encoding == 'bgr8':
         gains = gains[::-1]
     H, W = cam.height, cam.width
-    full_noise = sensor.read_noise >= 0.1
+    full_noise = sensor.read_noise >= 0.1 or background is not None
     channels = []
     for g in gains:
         signal = np.zeros((H, W))
@@ -224,6 +269,10 @@ def expose(cam, patches, rng, sensor: SensorModel, encoding='mono8'):
             region = _paste(signal, u0, v0, p * g)
             if region is not None:
                 regions.append(region)
+        if background is not None:
+            # The marker hides what is behind it: exact inside its image, and close at its
+            # blurred rim, where the brighter of the two wins.
+            signal = np.maximum(signal, background * g)
         if full_noise:
             vals = sensor.black_level + rng.normal(0.0, sensor.read_noise, (H, W))
             vals += rng.poisson(np.clip(signal, 0, None) * sensor.gain) / sensor.gain
