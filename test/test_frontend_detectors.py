@@ -284,7 +284,7 @@ def test_sphere_on_the_simulators_frames():
 
 
 def _cluttered_scene(rng):
-    """A static scene: shaded boxes and discs plus three marker look-alikes brighter than it."""
+    """Return a static scene: boxes plus three marker look-alikes brighter than the marker."""
     scene = np.full(SHAPE, 50.0)
     for _ in range(30):
         x, y = rng.integers(0, 600), rng.integers(0, 440)
@@ -294,8 +294,8 @@ def _cluttered_scene(rng):
     return scene
 
 
-def _dwells(rng, n_dwells, frames_per_dwell, radius=5.0):
-    """Marker positions: one per dwell, spread over the image."""
+def _dwells(rng, n_dwells, frames_per_dwell):
+    """Return marker positions, one per dwell, spread over the image, and frames per dwell."""
     return [rng.uniform([60, 60], [580, 420]) for _ in range(n_dwells)], frames_per_dwell
 
 

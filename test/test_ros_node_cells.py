@@ -59,7 +59,7 @@ def ur5_bag(tmp_path_factory):
 
 
 def test_node_calibrates_a_ur5_with_two_compressed_colour_cameras(ros_env, client, ur5_bag,
-                                                                   tmp_path):
+                                                                  tmp_path):
     with open(ur5_bag / 'ground_truth' / 'params.yaml') as f:
         params = yaml.safe_load(f)
     p = params['armcal']['ros__parameters']

@@ -262,7 +262,7 @@ class SimResult:
         return expose(cam, patches, rng, sensor, encoding, background)
 
     def _clutter(self, j, sensor):
-        """The static scene behind camera ``j`` (drawn once per camera and sensor)."""
+        """Return the static scene behind camera ``j`` (drawn once per camera and sensor)."""
         cache = self.__dict__.setdefault('_clutter_cache', {})
         key = (j, sensor.clutter_level, sensor.clutter_spots, sensor.peak)
         if key not in cache:

@@ -216,8 +216,8 @@ def clutter_scene(width, height, sensor: SensorModel, rng):
     Return a static cluttered scene (height, width) in DN for one camera (module docstring).
 
     Shaded background at 0.5-1 x ``clutter_level``; 40 boxes, 20 discs and 20 bars (up to
-    400 px long) of brightness uniform in [0, 2 x ``clutter_level``]; ``clutter_spots`` discs of radius 2-8 px
-    at 0.6-1.1 x the marker's ``peak`` with a soft edge like the marker's blur.
+    400 px long) of brightness uniform in [0, 2 x ``clutter_level``]; ``clutter_spots`` discs
+    of radius 2-8 px at 0.6-1.1 x the marker's ``peak`` with a soft edge like the marker's.
     """
     level = float(sensor.clutter_level)
     v, u = np.mgrid[0:height, 0:width].astype(float)
