@@ -628,10 +628,20 @@ class CalibratorNode(Node):
         self._publish_markers()
 
     # -- shutdown ------------------------------------------------------------------------
-    def close(self, solve_timeout=30.0):
-        """Stop the worker, wait for a running solve, save; call before destroy_node()."""
+    def close(self, solve_timeout=15.0):
+        """
+        Stop the worker, wait for a running solve, save; call before destroy_node().
+
+        Bounded: 5 s for the front-end worker, ``solve_timeout`` for a running solve (whose
+        result is then dropped), so a supervisor's stop timeout of 30 s is never reached.
+        """
+        self.get_logger().info('shutting down: stopping the front end'
+                               + (', waiting for the running solve' if self.engine.solving
+                                  else ''))
         self.queue.close()
-        self._worker.join(timeout=10.0)
+        self._worker.join(timeout=5.0)
+        if self._worker.is_alive():
+            self.get_logger().warning('the front-end worker did not stop within 5 s')
         if not self.engine.wait(solve_timeout):
             self.get_logger().warning('a solve is still running at shutdown; its result is '
                                       'discarded')
