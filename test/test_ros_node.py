@@ -219,6 +219,36 @@ def start_node(env, params, log_path):
                  params], env, log_path)
 
 
+def replay_and_calibrate(client, env, params, bag, log_dir, duration, rate, procs, diag,
+                         info):
+    """
+    Start the node, replay ``bag`` into it and call ~/calibrate once its solve has ended.
+
+    The node runs with ``params``; every camera's CameraInfo in ``info`` (the recorder lists)
+    is awaited after the call.  The processes go into ``procs`` (the caller kills them).
+    Returns (node, monotonic time of the call).
+    """
+    node = start_node(env, params, log_dir / 'node.log')
+    procs.append(node)
+    wait_until(lambda: diag_values(diag, 'armcal: calibration') or not node.alive(), 30,
+               'node diagnostics')
+    assert node.alive(), node.log()
+    replay = Proc([sys.executable, '-m', 'armcal_ros.cli', 'replay', str(bag), '--rate',
+                   str(rate), '--delay', '0.5'], env, log_dir / 'replay.log')
+    procs.append(replay)
+    replay.p.wait(timeout=duration / rate + 60.0)
+    assert replay.p.returncode == 0, replay.log()
+    wait_until(lambda: (diag_values(diag, 'armcal: calibration') or {}).get(
+        'solving') == 'False', 120, 'the background solve to end')
+    t_cal = time.monotonic()
+    res = client.trigger('calibrate')
+    assert res.success, res.message
+    for c, got in info.items():
+        wait_until(lambda: got and got[-1][0] >= t_cal, 120, f'CameraInfo of {c} after '
+                   '~/calibrate')
+    return node, t_cal
+
+
 @pytest.fixture(scope='module')
 def live(ros_env, sim, client, tmp_path_factory):
     """Node A calibrating from a 2x replay; ~/calibrate called at the end."""

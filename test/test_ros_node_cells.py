@@ -11,9 +11,6 @@ truth (focal within 3 %, camera centre within 40 mm: test_offline.py's tolerance
 Helpers, QoS and the process hygiene are those of test_ros_node.py.
 """
 
-import sys
-import time
-
 import numpy as np
 import pytest
 import yaml
@@ -27,7 +24,8 @@ from sensor_msgs.msg import CameraInfo  # noqa: E402
 from armcal_ros.io.calib_files import read_cameras  # noqa: E402
 from armcal_ros.sim.cells import CELLS  # noqa: E402
 from ros_test_env import isolated_ros_env  # noqa: E402
-from test_ros_node import Client, diag_values, Proc, start_node, wait_until  # noqa: E402
+from test_ros_node import (Client, diag_values, replay_and_calibrate,  # noqa: E402
+                           wait_until)
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
@@ -73,24 +71,9 @@ def test_node_calibrates_a_ur5_with_two_compressed_colour_cameras(ros_env, clien
     diag, _ = client.record(DiagnosticArray, '/diagnostics', 10)
     procs = []
     try:
-        node = start_node(ros_env, str(params_file), tmp_path / 'node.log')
-        procs.append(node)
-        wait_until(lambda: diag_values(diag, 'armcal: calibration') or not node.alive(), 30,
-                   'node diagnostics')
-        assert node.alive(), node.log()
-        replay = Proc([sys.executable, '-m', 'armcal_ros.cli', 'replay', str(ur5_bag),
-                       '--rate', str(RATE), '--delay', '0.5'], ros_env, tmp_path / 'replay.log')
-        procs.append(replay)
-        replay.p.wait(timeout=DURATION / RATE + 60.0)
-        assert replay.p.returncode == 0, replay.log()
-        wait_until(lambda: (diag_values(diag, 'armcal: calibration') or {}).get(
-            'solving') == 'False', 120, 'the background solve to end')
-        t_cal = time.monotonic()
-        res = client.trigger('calibrate')
-        assert res.success, res.message
+        _, t_cal = replay_and_calibrate(client, ros_env, str(params_file), ur5_bag, tmp_path,
+                                        DURATION, RATE, procs, diag, info)
         for c in CAMS:
-            wait_until(lambda: info[c] and info[c][-1][0] >= t_cal, 120,
-                       f'CameraInfo of {c} after ~/calibrate')
             wait_until(lambda: pose[c] and pose[c][-1][0] >= t_cal, 20, f'pose of {c}')
         final = diag_values(diag, 'armcal: calibration')
         for c in CAMS:

@@ -9,8 +9,6 @@ Helpers, QoS and the process hygiene are those of test_ros_node.py.
 """
 
 import os
-import sys
-import time
 
 import numpy as np
 import pytest
@@ -21,7 +19,7 @@ from sensor_msgs.msg import CameraInfo  # noqa: E402
 
 from armcal_ros.io.calib_files import read_cameras  # noqa: E402
 from ros_test_env import isolated_ros_env  # noqa: E402
-from test_ros_node import Client, diag_values, Proc, start_node, wait_until  # noqa: E402
+from test_ros_node import Client, replay_and_calibrate, start_node  # noqa: E402
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 
@@ -74,24 +72,8 @@ def test_pose_input_replay_gives_camera_info(ros_env, client, pose_sim, tmp_path
     diag, _ = client.record(DiagnosticArray, '/diagnostics', 10)
     procs = []
     try:
-        node = start_node(ros_env, params, tmp_path / 'node.log')
-        procs.append(node)
-        wait_until(lambda: diag_values(diag, 'armcal: calibration') or not node.alive(), 30,
-                   'node diagnostics')
-        assert node.alive(), node.log()
-        replay = Proc([sys.executable, '-m', 'armcal_ros.cli', 'replay', str(pose_sim),
-                       '--rate', str(RATE), '--delay', '0.5'], ros_env, tmp_path / 'replay.log')
-        procs.append(replay)
-        replay.p.wait(timeout=DURATION / RATE + 60.0)
-        assert replay.p.returncode == 0, replay.log()
-        wait_until(lambda: (diag_values(diag, 'armcal: calibration') or {}).get(
-            'solving') == 'False', 120, 'the background solve to end')
-        t_cal = time.monotonic()
-        res = client.trigger('calibrate')
-        assert res.success, res.message
-        for c in CAMS:
-            wait_until(lambda: info[c] and info[c][-1][0] >= t_cal, 120,
-                       f'CameraInfo of {c} after ~/calibrate')
+        node, _ = replay_and_calibrate(client, ros_env, params, pose_sim, tmp_path, DURATION,
+                                       RATE, procs, diag, info)
         log = node.log()
         assert 'pose' in log and POSE_TOPIC in log, log
     finally:
