@@ -25,6 +25,9 @@ def _add_simulate(p):
                         '; '.join(f'{k}: {c.description}' for k, c in CELLS.items()))
     p.add_argument('--scenario', default=None, choices=sorted(SCENARIOS),
                    help='robot errors (default geometric, or the cell\'s)')
+    p.add_argument('--error-model', default='joint-origin', choices=['joint-origin', 'dh'],
+                   help='geometric errors: 6-DoF on every joint origin, or the prototype\'s DH '
+                        'errors (offset, a, d, alpha; for DH-built URDFs)')
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--duration', type=float, default=60.0, help='seconds of teleoperation')
     p.add_argument('--storage', default='mcap', choices=['mcap', 'sqlite3'])
@@ -54,7 +57,7 @@ def _run_simulate(args):
     compressed = cell.compressed if args.compressed is None else \
         (None if args.compressed == 'none' else args.compressed)
     encoding = args.encoding or cell.encoding
-    settings = cell.sim_settings()
+    settings = cell.sim_settings(error_model=args.error_model)
     result = simulate_cell(scenario, args.seed, args.duration, settings)
 
     def progress(i, n):
