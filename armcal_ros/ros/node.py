@@ -681,7 +681,11 @@ def main(args=None):
         pass
     finally:
         node.close()
-        executor.shutdown()
+        # Bounded: a KeyboardInterrupt raised while a callback's task was suspended can leave
+        # rclpy's count of executing work above zero, and shutdown() without a timeout then
+        # waits forever (a node killed after 30 s of silence on SIGINT was seen once).
+        if not executor.shutdown(timeout_sec=5.0):
+            node.get_logger().warning('executor: callbacks still running after 5 s; exiting')
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
