@@ -335,6 +335,7 @@ def select_model(cameras, measured, obs: Observations, base: PriorSettings = Non
     if kinematics is None:
         allowed = [m for m in allowed if m not in KINEMATIC_MODELS]
     noise = None
+    noise_from_scatter = False
     points0 = None
     quiet = replace(settings, max_gate_rounds=0, ftol=max(settings.ftol, CANDIDATE_FTOL),
                     max_iterations=min(settings.max_iterations, CANDIDATE_MAX_ITERATIONS))
@@ -349,6 +350,7 @@ def select_model(cameras, measured, obs: Observations, base: PriorSettings = Non
                 and pooled_sigma_px > 0:
             settings = replace(settings, pixel_sigma=float(pooled_sigma_px))
             quiet = replace(quiet, pixel_sigma=float(pooled_sigma_px))
+            noise_from_scatter = True
     cands: List[Candidate] = []
     seen = {}
     last_kin = {}
@@ -456,7 +458,7 @@ def select_model(cameras, measured, obs: Observations, base: PriorSettings = Non
         reason += (f'; image noise {noise.pixel_sigma:.3g} px estimated from the free-network '
                    f'residuals ({noise.n_observations} observations, redundancy '
                    f'{noise.redundancy:.0f}) and used for every candidate')
-    elif settings.pixel_sigma == pooled_sigma_px:
+    elif noise_from_scatter:
         reason += (f'; image noise {settings.pixel_sigma:.3g} px from the scatter of the pooled '
                    'detections (the free network has no redundancy, e.g. one camera; a lower '
                    'bound) and used for every candidate')
