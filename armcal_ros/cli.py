@@ -20,12 +20,13 @@ def _add_simulate(p):
                    help='bag directory to create (must not exist); ground truth goes to '
                         'BAG/ground_truth/')
     from armcal_ros.sim.cells import CELLS
+    from armcal_ros.sim.true_robot import ERROR_MODELS
     p.add_argument('--cell', default='puma-3cam', choices=sorted(CELLS),
                    help='arm, cameras and image transport: ' +
                         '; '.join(f'{k}: {c.description}' for k, c in CELLS.items()))
     p.add_argument('--scenario', default=None, choices=sorted(SCENARIOS),
                    help='robot errors (default geometric, or the cell\'s)')
-    p.add_argument('--error-model', default='joint-origin', choices=['joint-origin', 'dh'],
+    p.add_argument('--error-model', default=ERROR_MODELS[0], choices=ERROR_MODELS,
                    help='geometric errors: 6-DoF on every joint origin, or the prototype\'s DH '
                         'errors (offset, a, d, alpha; for DH-built URDFs)')
     p.add_argument('--seed', type=int, default=0)

@@ -222,6 +222,8 @@ class SimResult:
     frames: FrameTruth
     dwells: DwellTruth
     start_ns: int = START_TIME_NS
+    #: Each camera's static scene behind the marker, drawn on first use (:meth:`render`).
+    _clutter_cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def chain(self):
@@ -263,13 +265,12 @@ class SimResult:
 
     def _clutter(self, j, sensor):
         """Return the static scene behind camera ``j`` (drawn once per camera and sensor)."""
-        cache = self.__dict__.setdefault('_clutter_cache', {})
         key = (j, sensor.clutter_level, sensor.clutter_spots, sensor.peak)
-        if key not in cache:
+        if key not in self._clutter_cache:
             cam = self.cameras[j]
-            cache[key] = clutter_scene(cam.width, cam.height, sensor,
-                                       np.random.default_rng([self.seed, 2027, j]))
-        return cache[key]
+            self._clutter_cache[key] = clutter_scene(cam.width, cam.height, sensor,
+                                                     np.random.default_rng([self.seed, 2027, j]))
+        return self._clutter_cache[key]
 
     @property
     def _focus(self):
