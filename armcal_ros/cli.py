@@ -1,5 +1,5 @@
 """
-The ``armcal`` command (DESIGN.md section 6).
+The ``armcal`` command: calibrate, replay, simulate and demo (README, "Command line").
 
 Each subcommand is a pair of functions registered in :data:`SUBCOMMANDS`: one adds its
 arguments to an argparse sub-parser, the other runs it and returns the exit status.  Errors a

@@ -14,11 +14,12 @@ import os
 import sys
 
 from armcal_ros.compare import compare, format_comparison, load_truth
-
 from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.calibration import calibrate
 from armcal_ros.core.evaluation import score_cameras
 from armcal_ros.core.priors import PriorSettings
+from armcal_ros.offline import collect_samples, format_table, solve_and_write
+from armcal_ros.settings import load_settings, with_noise_model
 from armcal_ros.sim.synthetic import make_problem
 
 
@@ -61,23 +62,20 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 def bag_demo(bag, params, output, noise_models, out=sys.stdout):
     """Run the front end on ``bag`` once, solve with each noise model, compare with the truth."""
-    from armcal_ros.offline import collect_samples, format_table, solve_and_write
-    from armcal_ros.params import check_value, load_params_file
     gt = os.path.join(bag, 'ground_truth')
     truth, _ = load_truth(gt)
-    values = load_params_file(params)
+    settings = load_settings(params)
 
     def progress(i, n):
         print(f'\r  reading {bag}: {i}/{n} messages', end='', file=sys.stderr, flush=True)
-    front = collect_samples(bag, values, progress)
+    front = collect_samples(bag, settings, progress)
     print('', file=sys.stderr)
     print(f'Front end: {front.messages} messages in {front.time_s:.1f} s -> '
           f'{len(front.store)} samples\n', file=out)
     summary = []
     for model in noise_models:
-        values['noise_model'] = check_value('noise_model', model)
         dest = os.path.join(output, model)
-        res = solve_and_write(front, values, dest)
+        res = solve_and_write(front, with_noise_model(settings, model), dest)
         est = {k: c.camera for k, c in res.outcome.calibration.cameras.items()}
         score = compare(est, gt)
         print(f'== {model}  (solve {res.outcome.time_s:.1f} s; files in {dest})', file=out)

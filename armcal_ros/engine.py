@@ -24,7 +24,6 @@ estimates the board's pose on the link (T_link_target) when the board says so.  
 seeds the next solve and is saved as ``target.yaml`` beside the calibration.
 """
 
-import json
 import os
 import threading
 import time
@@ -32,48 +31,20 @@ from dataclasses import dataclass, field, replace
 from typing import Callable, Dict, List, Optional
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
-import yaml
 
 from armcal_ros.core.adjustment import Observations, SolverSettings
 from armcal_ros.core.board_calibration import BoardData, calibrate_board, MountSettings
 from armcal_ros.core.calibration import calibrate, CalibrationResult, CameraSpec
-from armcal_ros.core.camera import Camera, skew
+from armcal_ros.core.image_noise import pooled_pixel_sigma
 from armcal_ros.core.kinematic_prior import KinematicData
-from armcal_ros.core.model_selection import pooled_pixel_sigma
 from armcal_ros.core.priors import KINEMATIC_MODELS, PriorSettings
-from armcal_ros.core.target import pose_matrix
+from armcal_ros.core.results import Calibration, calibration_from_result
+from armcal_ros.core.target import pose_vector
 from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.frontend.store import SampleStore
-from armcal_ros.io.calib_files import atomic_write_text, read_cameras, write_cameras
-
-CALIBRATION_FILE = 'calibration.json'
-TARGET_FILE = 'target.yaml'
-
-
-def target_yaml(T, std, link, estimated):
-    """Return the text of ``target.yaml``: T_link_target and, when estimated, its std."""
-    t = np.asarray(T, float)
-    q = quaternion_of(t)
-    lines = [f'# T_{link}_target: pose of the target frame in {link}',
-             f'estimated: {str(bool(estimated)).lower()}',
-             'translation: [' + ', '.join(f'{x:.6f}' for x in t[:3, 3]) + ']',
-             'rotation_xyzw: [' + ', '.join(f'{x:.8f}' for x in q) + ']']
-    if std is not None:
-        lines.append('std_translation_m: [' + ', '.join(f'{x:.6f}' for x in std[:3]) + ']')
-        lines.append('std_rotation_rad: [' + ', '.join(f'{x:.6f}' for x in std[3:]) + ']')
-    return '\n'.join(lines) + '\n'
-
-
-def read_target_yaml(path):
-    """Return T_link_target (4, 4) from a ``target.yaml``; ValueError naming the file."""
-    try:
-        with open(path) as f:
-            doc = yaml.safe_load(f)
-        return pose_matrix(doc['translation'], doc['rotation_xyzw'])
-    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f'{path}: cannot read the target pose: {exc}') from exc
+from armcal_ros.io.results_files import (CALIBRATION_FILE, load_calibration, read_target_yaml,
+                                         TARGET_FILE, write_calibration, write_target)
 
 
 @dataclass
@@ -120,51 +91,6 @@ class EngineSettings:
 
 
 @dataclass
-class CameraCalibration:
-    """One camera's accepted calibration and its quality figures."""
-
-    camera: Camera
-    std: Dict[str, float]
-    pose_covariance: np.ndarray          # 6x6 over (x, y, z, rx, ry, rz) of T_base_camera
-    rms_px: float
-    n_observations: int
-    n_inliers: int
-
-
-@dataclass
-class Calibration:
-    """A calibration the engine accepted: cameras, quality, and how it was obtained."""
-
-    cameras: Dict[str, CameraCalibration]
-    model: str
-    cost: float
-    n_samples: int
-    solve_time_s: float
-    solved_at: float                     # wall-clock seconds since the epoch
-    status: str
-    message: str
-    hyperparameters: Dict[str, float] = field(default_factory=dict)
-
-    def summary(self):
-        """Return a JSON-friendly dict (no numpy types)."""
-        cams = {}
-        for name, c in self.cameras.items():
-            t, q = c.camera.pose_in_world()
-            cams[name] = dict(
-                width=c.camera.width, height=c.camera.height, fx=c.camera.fx, fy=c.camera.fy,
-                cx=c.camera.cx, cy=c.camera.cy, dist=[float(v) for v in c.camera.dist],
-                translation=[float(v) for v in t], rotation=[float(v) for v in q],
-                std={k: float(v) for k, v in c.std.items()},
-                pose_covariance=[float(v) for v in np.asarray(c.pose_covariance).ravel()],
-                rms_px=float(c.rms_px), n_observations=int(c.n_observations),
-                n_inliers=int(c.n_inliers))
-        return dict(model=self.model, cost=float(self.cost), n_samples=int(self.n_samples),
-                    solve_time_s=float(self.solve_time_s), solved_at=float(self.solved_at),
-                    status=self.status, message=self.message,
-                    hyperparameters=dict(self.hyperparameters), cameras=cams)
-
-
-@dataclass
 class SolveOutcome:
     """What one solve did: ``accepted`` says whether it became the current calibration."""
 
@@ -174,38 +100,6 @@ class SolveOutcome:
     calibration: Optional[Calibration]
     n_samples: int
     time_s: float
-
-
-def pose_covariance(cam: Camera, cov_pose):
-    """
-    Covariance of T_base_camera over (x, y, z, rx, ry, rz) from the solver's pose covariance.
-
-    The solver perturbs world-to-camera as R <- exp([w]x) R, t <- t + dt.  The optical centre
-    C = -R^T t moves by dC = -R^T [t]x w - R^T dt, and the camera's orientation in the base frame,
-    R^T, by a base-frame rotation of -R^T w (ROS PoseWithCovariance convention: rotations about
-    the fixed parent axes).
-    """
-    R, t = cam.rotation, cam.translation
-    J = np.zeros((6, 6))
-    J[:3, :3] = -R.T @ skew(t)
-    J[:3, 3:] = -R.T
-    J[3:, :3] = -R.T
-    return J @ np.asarray(cov_pose) @ J.T
-
-
-def calibration_from_result(result: CalibrationResult, n_samples, hyper=None) -> Calibration:
-    """Turn a solver result into a :class:`Calibration` (pose covariances included)."""
-    adj = result.adjustment
-    cams = {}
-    names = adj.parameter_names
-    for name, est in adj.cameras.items():
-        idx = [names.index(f'{name}/{p}') for p in ('wx', 'wy', 'wz', 'tx', 'ty', 'tz')]
-        cov = adj.covariance[np.ix_(idx, idx)]
-        cams[name] = CameraCalibration(est.camera.copy(), dict(est.std),
-                                       pose_covariance(est.camera, cov), est.rms_px,
-                                       est.n_observations, est.n_inliers)
-    return Calibration(cams, adj.model, adj.cost, n_samples, result.time_s, time.time(),
-                       result.status, result.message, dict(hyper or {}))
 
 
 class CalibrationEngine:
@@ -490,9 +384,8 @@ class CalibrationEngine:
             with self._lock:
                 self.T_link_target = np.array(res.T_link_target, float)
                 self.mount_std = None if res.mount_std is None else np.array(res.mount_std)
-            T = res.T_link_target
-            outcome.calibration.hyperparameters['T_link_target'] = [
-                float(x) for x in np.concatenate([T[:3, 3], quaternion_of(T)])]
+            outcome.calibration.hyperparameters['T_link_target'] = pose_vector(
+                res.T_link_target)
         return self._finish(outcome)
 
     def _judge(self, result, n, elapsed, model=None):
@@ -579,21 +472,13 @@ class CalibrationEngine:
             written = [self.store.save(directory)]
             cal = self._current
         if cal is not None:
-            cams = [c.camera for c in cal.cameras.values()]
-            write_cameras(directory, cams, self.settings.base_frame)
-            written += [os.path.join(directory, f'{c.name}.yaml') for c in cams]
-            written.append(os.path.join(directory, 'extrinsics.yaml'))
-            path = os.path.join(directory, CALIBRATION_FILE)
-            atomic_write_text(path, json.dumps(cal.summary(), indent=1))
-            written.append(path)
+            written += write_calibration(directory, cal, self.settings.base_frame)
         board = self.settings.board
         with self._lock:
             T, std = self.T_link_target, self.mount_std
         if board is not None and T is not None and cal is not None:
-            path = os.path.join(directory, TARGET_FILE)
-            atomic_write_text(path, target_yaml(T, std, self.settings.marker_link,
-                                                board.estimate_mount))
-            written.append(path)
+            written.append(write_target(directory, T, std, self.settings.marker_link,
+                                        board.estimate_mount))
         return [str(w) for w in written if w]
 
     def load(self, directory):
@@ -641,28 +526,3 @@ class CalibrationEngine:
                 self.T_link_target = T
             said.append('the board\'s mount')
         return 'restored ' + ' and '.join(said) if said else 'nothing to restore'
-
-
-def quaternion_of(T):
-    """Return the quaternion (x, y, z, w) of a transform's rotation."""
-    return Rotation.from_matrix(np.asarray(T, float)[:3, :3]).as_quat()
-
-
-def load_calibration(directory) -> Calibration:
-    """Read a calibration written by :meth:`CalibrationEngine.save`."""
-    path = os.path.join(directory, CALIBRATION_FILE)
-    try:
-        with open(path) as f:
-            doc = json.load(f)
-        _, cams = read_cameras(directory, names=list(doc['cameras']))
-    except (OSError, ValueError, KeyError) as exc:
-        raise ValueError(f'{path}: cannot restore the calibration: {exc}') from exc
-    out = {}
-    for cam in cams:
-        d = doc['cameras'][cam.name]
-        out[cam.name] = CameraCalibration(
-            cam, dict(d['std']), np.asarray(d['pose_covariance'], float).reshape(6, 6),
-            float(d['rms_px']), int(d['n_observations']), int(d['n_inliers']))
-    return Calibration(out, doc['model'], doc['cost'], doc['n_samples'], doc['solve_time_s'],
-                       doc['solved_at'], doc['status'], doc['message'],
-                       doc.get('hyperparameters', {}))

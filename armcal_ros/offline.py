@@ -1,13 +1,16 @@
 """
-``armcal calibrate BAG``: the whole pipeline on a recorded rosbag2 bag, no ROS middleware needed.
+``armcal calibrate SOURCE``: the whole pipeline on a recording, no ROS middleware needed.
 
-Messages are read with rosbags (mcap or sqlite3), fed in bag order to the same
-:class:`~armcal_ros.pipeline.SampleCollector` and :class:`~armcal_ros.engine.CalibrationEngine`
-the node uses, and the calibration is solved once at the end.  The arm's position comes from
-``joint_states_topic`` and the robot model, or with pose input (``pose_topic`` set) from the
-marker link's measured pose (PoseStamped or TransformStamped; no robot model needed).  A camera
-topic that is missing or empty is reported and the other cameras are still calibrated; a message
-that cannot be deserialised is counted and skipped.
+A recording is a rosbag2 bag (mcap or sqlite3, read with rosbags) or a robot_cal_tools data
+folder (images and link poses).  Either becomes one time-ordered stream of inputs - joint
+states or measured link poses, and images - fed to the pipeline the node uses
+(:func:`~armcal_ros.compose.build_pipeline`: the same collector pools each dwell into one
+sample, the same engine solves), and the calibration is solved once at the end.  A folder's
+views are replayed as still dwells one second apart, so the offline and the live paths never
+differ in what they make of the same data.
+
+A camera topic that is missing or empty is reported and the other cameras are still calibrated;
+a message that cannot be deserialised is counted and skipped.
 """
 
 import json
@@ -15,29 +18,78 @@ import os
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional
+from typing import Callable, Dict, Iterator, List, Optional
 
-import numpy as np
-
-from armcal_ros.core.kinematic_prior import KinematicData
-from armcal_ros.engine import (CalibrationEngine, EngineSettings, quaternion_of,
-                               SolveOutcome)
+from armcal_ros.compose import build_engine, build_pipeline
+from armcal_ros.core.target import pose_vector
+from armcal_ros.engine import SolveOutcome
+from armcal_ros.frontend.collector import SampleCollector
+from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.frontend.store import SampleStore
 from armcal_ros.io.bag import bag_topics, DeserializationError, iter_raw
 from armcal_ros.io.calib_files import atomic_write_text
-from armcal_ros.params import (check_all, check_value, load_params_file, prior_settings,
-                               solver_settings, urdf_text)
-from armcal_ros.pipeline import (board_target, make_board, make_detectors, pose_from_msg,
-                                 SampleCollector)
+from armcal_ros.io.message_fields import pose_from_msg, stamp_ns
+from armcal_ros.io.rct_import import is_rct_folder, load_rct_folder, RctFormatError
 from armcal_ros.robot.kinematics import KinematicChain
+from armcal_ros.settings import load_settings, Settings
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 POSE_TYPES = ('geometry_msgs/msg/PoseStamped', 'geometry_msgs/msg/TransformStamped')
 IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
+#: A robot_cal_tools folder is replayed as one still view per second, each view's link pose
+#: given 20 ms before and after its image (inside the pose history's 0.1 s gap limit).
+FOLDER_VIEW_PERIOD_NS = 1_000_000_000
+FOLDER_POSE_MARGIN_NS = 20_000_000
 
 
 class CalibrateError(RuntimeError):
     """A failure the user can act on; the message is the one-line reason."""
+
+
+@dataclass
+class EncodedImage:
+    """An image file's bytes as a CompressedImage-like message (``format``, ``data``)."""
+
+    format: str
+    data: bytes
+
+
+@dataclass
+class Recording:
+    """
+    A recording as a stream of front-end inputs.
+
+    ``events()`` yields ``('joints', stamp_ns, names, positions)``, ``('pose', stamp_ns,
+    translation, quaternion)``, ``('image', camera, stamp_ns, message)`` or
+    ``('corrupt', reason)``, in time order.  ``board_target`` and ``board_guess`` complete a
+    board from the data set's own files (a robot_cal_tools ``target.yaml`` and
+    ``pose_guesses.yaml``).
+    """
+
+    events: Callable[[], Iterator[tuple]]
+    total: int
+    info: Dict
+    warnings: List[str] = field(default_factory=list)
+    board_target: Optional[tuple] = None
+    board_guess: Optional[object] = None
+    #: The source gives the link's poses whatever ``pose_topic`` says (a folder).
+    poses_given: bool = False
+
+
+@dataclass
+class FrontEnd:
+    """The samples a recording gave, with everything needed to solve and report on them."""
+
+    chain: Optional[KinematicChain]       # None with pose input
+    board: Optional[BoardTarget]          # None for a point marker
+    store: SampleStore
+    image_sizes: Dict[str, tuple]
+    counts: Dict[str, int]
+    warnings: List[str]
+    added: Dict[str, int]
+    messages: int
+    time_s: float
+    source: Dict = field(default_factory=dict)
 
 
 @dataclass
@@ -50,170 +102,152 @@ class OfflineResult:
     files: List[str] = field(default_factory=list)
 
 
-def stamp_ns(header_stamp):
-    """Return a builtin_interfaces/Time as integer nanoseconds."""
-    return int(header_stamp.sec) * 1_000_000_000 + int(header_stamp.nanosec)
-
-
-def _board(values):
-    """Return (CharucoBoard, BoardTarget) for a charuco marker_type, else (None, None)."""
-    if values['marker_type'] != 'charuco':
-        return None, None
-    try:
-        board = make_board(values)
-        return board, board_target(values, board)
-    except ValueError as exc:
-        raise CalibrateError(str(exc)) from exc
-
-
-def build_collector(values, log=None):
-    """
-    Robot chain, detectors and collector from parameter values.
-
-    With pose input (``pose_topic``) no robot model is read and the chain is None.
-    """
-    chain = None
-    if not values['pose_topic']:
-        try:
-            chain = KinematicChain.from_urdf(urdf_text(values), values['base_frame'],
-                                             values['marker_link'])
-        except ValueError as exc:
-            raise CalibrateError(f'robot model (parameters robot_description/'
-                                 f'robot_description_file, base_frame, marker_link): '
-                                 f'{exc}') from exc
-    board, target = _board(values)
-    detectors = make_detectors(values, values['camera_names'], board)
-    return chain, SampleCollector(chain, values['marker_offset'], values['camera_names'],
-                                  detectors, values['max_marker_speed'], values['dwell_radius'],
-                                  log=log, board=target,
-                                  max_views_per_dwell=values['max_views_per_dwell'])
-
-
-def build_engine(values, chain):
-    """
-    Engine and its sample store from parameter values.
-
-    ``chain`` (None with pose input) gives the kinematic models their Jacobian; a board
-    target has no use for it (those models are refused with a board).
-    """
-    store = SampleStore(max_samples=values['max_samples'],
-                        min_sample_spacing=values['min_sample_spacing'],
-                        same_point_tolerance=min(0.0005, values['min_sample_spacing']),
-                        joint_names=None if chain is None else chain.joint_names)
-    _, target = _board(values)
-    try:
-        settings = EngineSettings(list(values['camera_names']), prior_settings(values),
-                                  solver_settings(values), min_samples=values['min_samples'],
-                                  solve_period_s=values['solve_period'],
-                                  min_new_samples=values['min_new_samples'],
-                                  base_frame=values['base_frame'], board=target,
-                                  marker_link=values['marker_link'])
-    except ValueError as exc:
-        raise CalibrateError(str(exc)) from exc
-    if chain is None or target is not None:
-        return CalibrationEngine(settings, store)
-    offset = np.asarray(values['marker_offset'], float)
-
-    def kinematics(Q):
-        return KinematicData(chain.jacobian_errors(Q, offset), chain.error_names)
-    return CalibrationEngine(settings, store, kinematics_fn=kinematics)
-
-
-@dataclass
-class FrontEnd:
-    """The samples a bag gave, with everything needed to solve and report on them."""
-
-    chain: Optional[KinematicChain]       # None with pose input
-    store: SampleStore
-    image_sizes: Dict[str, tuple]
-    counts: Dict[str, int]
-    warnings: List[str]
-    added: Dict[str, int]
-    messages: int
-    time_s: float
-
-
-def collect_samples(bag, values, progress: Callable[[int, int], None] = None,
-                    log: Callable[[str], None] = None) -> FrontEnd:
-    """Read ``bag`` and turn its joint states and images into samples (the front end)."""
-    t0 = time.perf_counter()
+def open_bag(bag, settings: Settings) -> Recording:
+    """Check a bag's topics against ``settings`` and return it as a :class:`Recording`."""
     try:
         topics = bag_topics(bag)
     except Exception as exc:
         raise CalibrateError(f'cannot open bag {bag}: {exc}') from exc
-    warnings = []
-    pose_input = bool(values['pose_topic'])
-    if pose_input:
-        jt, kind, types = values['pose_topic'], 'pose_topic', POSE_TYPES
-    else:
-        jt, kind, types = values['joint_states_topic'], 'joint_states_topic', (JOINT_STATE,)
-    if jt not in topics or topics[jt][1] == 0:
-        raise CalibrateError(f'bag {bag} has no messages on {kind} {jt} '
+    inputs = settings.inputs
+    arm = inputs.arm_topic
+    kind, types = (('pose_topic', POSE_TYPES) if inputs.pose_input else
+                   ('joint_states_topic', (JOINT_STATE,)))
+    if arm not in topics or topics[arm][1] == 0:
+        raise CalibrateError(f'bag {bag} has no messages on {kind} {arm} '
                              f'(topics: {sorted(topics)})')
-    if topics[jt][0] not in types:
-        raise CalibrateError(f'{kind} {jt} carries {topics[jt][0]}, not '
+    if topics[arm][0] not in types:
+        raise CalibrateError(f'{kind} {arm} carries {topics[arm][0]}, not '
                              f'{" or ".join(types)}')
-    cam_of_topic = {}
-    for cam, topic in zip(values['camera_names'], values['image_topics']):
+    warnings, cam_of_topic = [], {}
+    for cam, topic in zip(inputs.camera_names, inputs.image_topics):
         if topic not in topics or topics[topic][1] == 0:
             warnings.append(f'camera {cam}: no messages on {topic}; it is not calibrated')
-            continue
-        if topics[topic][0] not in IMAGE_TYPES:
+        elif topics[topic][0] not in IMAGE_TYPES:
             warnings.append(f'camera {cam}: {topic} carries {topics[topic][0]}, not an image; '
                             f'it is not calibrated')
-            continue
-        cam_of_topic[topic] = cam
+        else:
+            cam_of_topic[topic] = cam
     if not cam_of_topic:
-        raise CalibrateError(f'bag {bag}: none of the image_topics {values["image_topics"]} '
+        raise CalibrateError(f'bag {bag}: none of the image_topics {list(inputs.image_topics)} '
                              f'has images')
-    for w in warnings:
+
+    def events():
+        for raw in iter_raw(bag, [arm] + list(cam_of_topic)):
+            try:
+                msg = raw.deserialize()
+            except DeserializationError as exc:
+                yield ('corrupt', str(exc))
+                continue
+            if raw.topic != arm:
+                yield ('image', cam_of_topic[raw.topic], stamp_ns(msg.header.stamp), msg)
+            elif inputs.pose_input:
+                yield ('pose', stamp_ns(msg.header.stamp)) + pose_from_msg(msg)
+            else:
+                yield ('joints', stamp_ns(msg.header.stamp), msg.name, msg.position)
+    total = topics[arm][1] + sum(topics[t][1] for t in cam_of_topic)
+    info = dict(kind='bag', path=os.path.abspath(str(bag)), arm=inputs.describe_arm())
+    return Recording(events, total, info, warnings)
+
+
+def open_folder(path, settings: Settings) -> Recording:
+    """
+    Return a robot_cal_tools folder as a :class:`Recording` of still views.
+
+    The folder has one camera: its images are the first of ``camera_names``.  View k is the
+    image at k seconds with its link pose given just before and after it, so the front end
+    pairs it as a still frame and pools it as a dwell of its own.
+    """
+    try:
+        data = load_rct_folder(path)
+    except RctFormatError as exc:
+        raise CalibrateError(str(exc)) from exc
+    names = settings.inputs.camera_names
+    camera = names[0]
+    warnings = []
+    if len(names) > 1:
+        warnings.append(f'a robot_cal_tools folder has one camera: calibrating it as '
+                        f'{camera!r} (camera_names lists {len(names)})')
+
+    def events():
+        for k, (image, T) in enumerate(zip(data.image_paths, data.poses)):
+            t = (k + 1) * FOLDER_VIEW_PERIOD_NS
+            x = pose_vector(T)
+            yield ('pose', t - FOLDER_POSE_MARGIN_NS, x[:3], x[3:])
+            try:
+                with open(image, 'rb') as f:
+                    msg = EncodedImage(os.path.splitext(image)[1].lstrip('.').lower(),
+                                       f.read())
+            except OSError as exc:
+                yield ('corrupt', f'{image}: {exc}')
+            else:
+                yield ('image', camera, t, msg)
+            yield ('pose', t + FOLDER_POSE_MARGIN_NS, x[:3], x[3:])
+    info = dict(kind='robot_cal_tools folder', path=os.path.abspath(path),
+                images=len(data.image_paths), arm='link poses of the folder')
+    return Recording(events, 3 * len(data.image_paths), info, warnings,
+                     data.target.board_args, data.target_guess, poses_given=True)
+
+
+def feed(collector: SampleCollector, event) -> List:
+    """Hand one :class:`Recording` event to the collector; return the samples it completed."""
+    kind = event[0]
+    if kind == 'joints':
+        return collector.add_joint_state(*event[1:])
+    if kind == 'pose':
+        return collector.add_pose(*event[1:])
+    if kind == 'image':
+        return collector.add_image(*event[1:])
+    collector.counts['corrupt_message'] += 1
+    collector.log('corrupt_message', f'skipped: {event[1]}')
+    return []
+
+
+def collect_samples(source, settings: Settings, progress: Callable[[int, int], None] = None,
+                    log: Callable[[str], None] = None) -> FrontEnd:
+    """Read a bag or a robot_cal_tools folder and turn it into samples (the front end)."""
+    t0 = time.perf_counter()
+    rec = open_folder(source, settings) if is_rct_folder(source) else open_bag(source, settings)
+    for w in rec.warnings:
         if log:
             log(w)
-    chain, collector = build_collector(values, log)
-    store = build_engine(values, chain).store
-    total = topics[jt][1] + sum(topics[t][1] for t in cam_of_topic)
+    try:
+        pipe = build_pipeline(settings, log, rec.board_target, rec.board_guess,
+                              pose_input=rec.poses_given or None)
+    except ValueError as exc:
+        raise CalibrateError(str(exc)) from exc
+    collector, store = pipe.collector, pipe.engine.store
     n = 0
     added = {'added': 0, 'merged': 0, 'replaced': 0, 'dropped': 0}
-    for raw in iter_raw(bag, [jt] + list(cam_of_topic)):
+    for event in rec.events():
         n += 1
         if progress and n % 500 == 0:
-            progress(n, total)
-        try:
-            msg = raw.deserialize()
-            if raw.topic == jt and pose_input:
-                samples = collector.add_pose(stamp_ns(msg.header.stamp), *pose_from_msg(msg))
-            elif raw.topic == jt:
-                samples = collector.add_joint_state(stamp_ns(msg.header.stamp), msg.name,
-                                                    msg.position)
-            else:
-                samples = collector.add_image(cam_of_topic[raw.topic],
-                                              stamp_ns(msg.header.stamp), msg)
-        except DeserializationError as exc:
-            collector.counts['corrupt_message'] += 1
-            collector.log('corrupt_message', f'skipped: {exc}')
-            continue
-        for s in samples:
+            progress(n, rec.total)
+        for s in feed(collector, event):
             added[store.add(s).value] += 1
     for s in collector.flush():
         added[store.add(s).value] += 1
     if progress:
-        progress(total, total)
-    return FrontEnd(chain, store, dict(collector.image_sizes), dict(collector.counts), warnings,
-                    added, n, time.perf_counter() - t0)
+        progress(rec.total, rec.total)
+    return FrontEnd(pipe.chain, pipe.engine.settings.board, store, dict(collector.image_sizes),
+                    dict(collector.counts), rec.warnings, added, n, time.perf_counter() - t0,
+                    rec.info)
 
 
-def solve_and_write(front: FrontEnd, values, output_dir) -> OfflineResult:
-    """Solve the collected samples with ``values``' noise model and write the files."""
-    if len(front.store) < values['min_samples']:
+def solve_and_write(front: FrontEnd, settings: Settings, output_dir) -> OfflineResult:
+    """Solve the collected samples with ``settings``' noise model and write the files."""
+    if len(front.store) < settings.schedule.min_samples:
         raise CalibrateError(f'only {len(front.store)} samples (min_samples '
-                             f'{values["min_samples"]}): did the arm dwell in view of the '
-                             f'cameras? front-end counts: {front.counts}')
-    engine = build_engine(values, front.chain)
+                             f'{settings.schedule.min_samples}): did the arm dwell in view of '
+                             f'the cameras? front-end counts: {front.counts}')
+    try:
+        engine = build_engine(settings, front.chain, front.board)
+    except ValueError as exc:
+        raise CalibrateError(str(exc)) from exc
     engine.store = front.store
     for cam, (w, h) in front.image_sizes.items():
         engine.set_image_size(cam, w, h)
     outcome = engine.solve(force=True)
-    report = make_report(values, engine, outcome, front,
+    report = make_report(settings, engine, outcome, front,
                          dict(front_end_s=front.time_s, solve_s=outcome.time_s,
                               total_s=front.time_s + outcome.time_s, messages=front.messages))
     if not outcome.accepted:
@@ -226,21 +260,22 @@ def solve_and_write(front: FrontEnd, values, output_dir) -> OfflineResult:
     return OfflineResult(outcome, report, front.warnings, files)
 
 
-def calibrate_bag(bag, values, output_dir, progress: Callable[[int, int], None] = None,
+def calibrate_bag(source, settings: Settings, output_dir,
+                  progress: Callable[[int, int], None] = None,
                   log: Callable[[str], None] = None) -> OfflineResult:
-    """Run the pipeline on ``bag`` with checked parameter ``values``; write to ``output_dir``."""
-    return solve_and_write(collect_samples(bag, values, progress, log), values, output_dir)
+    """Run the pipeline on a bag or robot_cal_tools folder; write to ``output_dir``."""
+    return solve_and_write(collect_samples(source, settings, progress, log), settings,
+                           output_dir)
 
 
-def make_report(values, engine, outcome, front, timings):
+def make_report(settings: Settings, engine, outcome, front: FrontEnd, timings):
     """Return the report.json content."""
     cal = outcome.calibration
     cams = {}
     if cal is not None:
-        for name, c in cal.summary()['cameras'].items():
-            cams[name] = c
+        cams.update(cal.summary()['cameras'])
         init = outcome.result.init if outcome.result is not None else {}
-        for name in values['camera_names']:
+        for name in settings.inputs.camera_names:
             if name not in cams:
                 r = init.get(name)
                 cams[name] = dict(status='not calibrated',
@@ -250,24 +285,19 @@ def make_report(values, engine, outcome, front, timings):
     if engine.settings.board is not None:
         T = engine.T_link_target
         target = dict(
-            T_link_target=(None if T is None else
-                           [float(x) for x in np.concatenate([T[:3, 3], quaternion_of(T)])]),
+            T_link_target=None if T is None else pose_vector(T),
             estimated=bool(engine.settings.board.estimate_mount),
             std=(None if engine.mount_std is None else [float(x) for x in engine.mount_std]))
+    prior, solver = settings.prior, settings.solver
     return dict(
-        input=dict(arm=('pose_topic ' + values['pose_topic'] if values['pose_topic'] else
-                        'joint_states_topic ' + values['joint_states_topic']),
-                   marker_type=values['marker_type']),
+        input=dict(front.source, marker_type=settings.target.marker_type),
         target=target,
-        noise_model=values['noise_model'],
-        hyperparameters=dict(pixel_sigma=values['pixel_sigma'],
-                             point_sigma=values['point_sigma'],
-                             bias_sigma=values['bias_sigma'],
-                             coherence_length=values['coherence_length'],
-                             kernel=values['kernel'],
-                             free_distortion=list(values['free_distortion']),
-                             robust_loss=values['robust_loss'],
-                             robust_loss_scale=values['robust_loss_scale']),
+        noise_model=prior.model,
+        hyperparameters=dict(pixel_sigma=solver.pixel_sigma, point_sigma=prior.point_sigma,
+                             bias_sigma=prior.bias_sigma,
+                             coherence_length=prior.coherence_length, kernel=prior.kernel,
+                             free_distortion=list(solver.free_distortion),
+                             robust_loss=solver.loss, robust_loss_scale=solver.loss_scale),
         chosen=(dict(cal.hyperparameters) if cal is not None else {}),
         accepted=bool(outcome.accepted), message=outcome.reason,
         n_samples=len(engine.store), samples=front.added, cameras=cams,
@@ -314,15 +344,15 @@ def add_arguments(p):
 
 def run(args):
     """Run ``armcal calibrate``; return the exit status (errors raise with a one-line reason)."""
-    from armcal_ros.io.rct_import import is_rct_folder
-    rct = is_rct_folder(args.bag)
+    folder = is_rct_folder(args.bag)
+    overrides = {} if args.noise_model is None else {'noise_model': args.noise_model}
     try:
-        values = load_params_file(args.params, require_robot_model=not rct)
-        if args.noise_model is not None:
-            values['noise_model'] = check_value('noise_model', args.noise_model)
-            check_all(values, require_robot_model=not rct)
+        settings = load_settings(args.params, overrides, require_robot_model=not folder)
     except ValueError as exc:
         raise CalibrateError(str(exc)) from exc
+    if folder and settings.target.marker_type != 'charuco':
+        raise CalibrateError('parameter marker_type: a robot_cal_tools folder holds a ChArUco '
+                             f'board, not a {settings.target.marker_type}; set charuco')
 
     def progress(i, n):
         if not args.quiet:
@@ -333,37 +363,13 @@ def run(args):
         if not args.quiet:
             print(f'\n[armcal] {message}', file=sys.stderr)
 
-    if rct:
-        from armcal_ros.board_pipeline import BoardPipelineError, calibrate_rct_folder
-        try:
-            report, files, _ = calibrate_rct_folder(args.bag, values, args.output, log)
-        except BoardPipelineError as exc:
-            raise CalibrateError(str(exc)) from exc
-        print(format_table(report))
-        tgt = report['target']
-        print(f'T_{values["marker_link"]}_target (x y z qx qy qz qw): ' +
-              ' '.join(f'{v:.5f}' for v in tgt['T_link_target']) +
-              (' (estimated)' if tgt['estimated'] else ' (given)'))
-        print(f'wrote {", ".join(os.path.basename(f) for f in files)} to {args.output}')
-        return 0
-    if values['pose_topic'] and values['marker_type'] == 'charuco':
-        # A board with pose input: every still frame is a view of its own (views from
-        # robot_cal_tools-style recordings are single frames), solved by the board pipeline.
-        from armcal_ros.board_pipeline import BoardPipelineError, calibrate_board_bag
-        try:
-            report, files, _ = calibrate_board_bag(args.bag, values, args.output, log)
-        except BoardPipelineError as exc:
-            raise CalibrateError(str(exc)) from exc
-        print(format_table(report))
-        print(f'wrote {", ".join(os.path.basename(f) for f in files)} to {args.output}')
-        return 0
-    res = calibrate_bag(args.bag, values, args.output, progress, log)
+    res = calibrate_bag(args.bag, settings, args.output, progress, log)
     if not args.quiet:
         print('', file=sys.stderr)
     print(format_table(res.report))
     tgt = res.report.get('target')
     if tgt and tgt['T_link_target'] is not None:
-        print(f'T_{values["marker_link"]}_target (x y z qx qy qz qw): ' +
+        print(f'T_{settings.robot.marker_link}_target (x y z qx qy qz qw): ' +
               ' '.join(f'{v:.5f}' for v in tgt['T_link_target']) +
               (' (estimated)' if tgt['estimated'] else ' (given)'))
     print(f'wrote {", ".join(os.path.basename(f) for f in res.files)} to {args.output}')

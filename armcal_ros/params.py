@@ -5,8 +5,9 @@ The ROS node declares them with descriptors; the offline CLI reads them from the
 parameter file.
 
 Each parameter has a type, a default, a description and a check.  A bad value is refused with the
-parameter's name and the reason - never silently replaced by a default.  DESIGN.md section 5 is
-the contract for the first block of names; the rest are documented tuning knobs.
+parameter's name and the reason - never silently replaced by a default.  The first block of
+names is the node's public contract (README, "Parameters"); the rest are documented tuning
+knobs.  :mod:`armcal_ros.settings` turns checked values into typed settings.
 """
 
 import math
@@ -17,9 +18,9 @@ from typing import Any, Callable, Dict, Optional
 
 import yaml
 
-from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.camera import DISTORTION_NAMES
-from armcal_ros.core.priors import KERNELS, KINEMATIC_MODELS, NOISE_MODELS, PriorSettings
+from armcal_ros.core.kernels import KERNELS
+from armcal_ros.core.priors import KINEMATIC_MODELS, NOISE_MODELS
 from armcal_ros.core.robust import LOSSES
 
 NAME_RE = re.compile(r'^[A-Za-z0-9_]+$')
@@ -94,7 +95,7 @@ def _pose7(v):
 
 
 PARAMS = [
-    # The contract (DESIGN.md section 5).
+    # The public contract (README, "Parameters").
     Param('robot_description', 'string', '', 'URDF text of the robot (ROS convention)'),
     Param('robot_description_file', 'string', '',
           'path to a URDF file (used when robot_description is empty; a relative path is '
@@ -290,13 +291,14 @@ def defaults():
             for p in PARAMS}
 
 
-def load_params_file(path, node_name=NODE_NAME, require_robot_model=True):
+def load_params_file(path, node_name=NODE_NAME, require_robot_model=True, overrides=None):
     """
     Read a ROS 2 parameter file and return the checked values (defaults filled in).
 
     Accepts ``<node_name>: ros__parameters:`` and ``/**: ros__parameters:`` (both merged, the
     node's own taking precedence) and ``/<node_name>``.  Unknown parameter names are an error
-    naming them.  ``require_robot_model`` is passed to :func:`check_all`.  A relative
+    naming them.  ``overrides`` (name -> value, e.g. from a command line) replace the file's
+    values.  ``require_robot_model`` is passed to :func:`check_all`.  A relative
     ``robot_description_file`` is resolved against the file's directory.
     """
     try:
@@ -317,6 +319,7 @@ def load_params_file(path, node_name=NODE_NAME, require_robot_model=True):
     if not merged:
         raise ValueError(f'{path}: no ros__parameters for {node_name!r} or /** '
                          f'(sections found: {list(doc)})')
+    merged.update(overrides or {})
     unknown = sorted(k for k in merged if k not in BY_NAME)
     if unknown:
         raise ValueError(f'{path}: unknown parameter(s) {unknown}')
@@ -331,59 +334,7 @@ def load_params_file(path, node_name=NODE_NAME, require_robot_model=True):
     return values
 
 
-def urdf_text(values):
-    """Return the URDF text from robot_description or robot_description_file."""
-    if values['robot_description']:
-        return values['robot_description']
-    path = values['robot_description_file']
-    try:
-        with open(path) as f:
-            return f.read()
-    except OSError as exc:
-        raise ValueError(f'parameter robot_description_file: cannot read {path}: {exc}') from exc
-
-
 def default_output_dir():
     """Return $ROS_HOME/armcal (ROS_HOME defaulting to ~/.ros)."""
     home = os.environ.get('ROS_HOME') or os.path.join(os.path.expanduser('~'), '.ros')
     return os.path.join(home, 'armcal')
-
-
-def prior_settings(values) -> PriorSettings:
-    """Build the prior settings from parameter values."""
-    return PriorSettings(values['noise_model'], values['point_sigma'], values['bias_sigma'],
-                         values['coherence_length'], values['kernel']).validate()
-
-
-def solver_settings(values) -> SolverSettings:
-    """Build the solver settings from parameter values."""
-    return SolverSettings(pixel_sigma=values['pixel_sigma'],
-                          free_distortion=tuple(values['free_distortion']),
-                          loss=values['robust_loss'], loss_scale=values['robust_loss_scale'],
-                          gate_sigmas=values['outlier_gate_sigmas']).validate()
-
-
-def charuco_settings(values, target=None):
-    """
-    Return the ChArUco board keyword arguments from parameter values.
-
-    ``target`` (rows, cols, square_size, marker_size, dictionary) from a data set's own target
-    description fills unset values; a set value that disagrees with it is an error naming it.
-    """
-    out = dict(rows=values['charuco_rows'], cols=values['charuco_cols'],
-               square_size=values['charuco_square_size'],
-               marker_size=values['charuco_marker_size'],
-               dictionary=values['charuco_dictionary'], legacy=values['charuco_legacy_pattern'])
-    if target is not None:
-        for k, v in zip(('rows', 'cols', 'square_size', 'marker_size'), target[:4]):
-            if out[k] == 0:
-                out[k] = v
-            elif not math.isclose(out[k], v, rel_tol=1e-6):
-                raise ValueError(f'parameter charuco_{k}: {out[k]} disagrees with the data '
-                                 f'set\'s target ({v})')
-        out['dictionary'] = target[4]
-    unset = [f'charuco_{k}' for k in ('rows', 'cols', 'square_size', 'marker_size')
-             if out[k] == 0]
-    if unset:
-        raise ValueError(f'parameters {", ".join(unset)} must be set for a charuco target')
-    return out

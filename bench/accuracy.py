@@ -1,5 +1,5 @@
 """
-Accuracy of every noise model on a simulated PUMA 560 cell (issue 6).
+Accuracy of every noise model on a simulated PUMA 560 cell.
 
 Point level: joint configurations drawn over a teleoperated arm's ranges whose nominal marker is
 in the workspace and inside every image; the true marker comes from the simulator's true robot
@@ -229,7 +229,7 @@ def summarise(results, scenarios, sizes, seeds):
 
 
 def targets(summary, n):
-    """Issue 6 targets at N = n, as (name, value, limit, met) rows."""
+    """Return the accuracy targets at N = n, as (name, value, limit, met) rows."""
     rows = []
 
     def g(sc, m, k):
@@ -367,7 +367,7 @@ def main(argv=None):
     for n in args.sizes:
         t = targets(summary, n)
         if t:
-            md += ['', f'Targets of issue 6 at N = {n}:', '',
+            md += ['', f'Accuracy targets at N = {n}:', '',
                    table(['target', 'measured', 'limit', 'met'],
                          [[a, f'{v:.3f}', f'{lim:g}', 'yes' if ok else '**no**']
                           for a, v, lim, ok in t])]
@@ -429,7 +429,7 @@ WHY_MISSED = [
     'not to 0.5.']
 
 DH_INTRO = ('The same benchmark with the simulator\'s `dh` error model, the errors of the '
-            'prototype in DESIGN.md section 3 (per joint 0.05 deg angle offset, 0.3 mm in the '
+            'estimator\'s first numpy prototype (per joint 0.05 deg angle offset, 0.3 mm in the '
             'link lengths a and d, 0.03 deg in the twist alpha; the first joint\'s origin is the '
             'base frame and carries none; marker mount 0.2 mm) instead of the default 6-DoF '
             'joint-origin errors (0.3 mm and 0.03 deg on every axis of every joint origin, the '

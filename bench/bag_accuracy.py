@@ -24,7 +24,7 @@ from _report import machine, table, write_json, write_section  # noqa: E402
 
 from armcal_ros.compare import compare  # noqa: E402
 from armcal_ros.offline import collect_samples, solve_and_write  # noqa: E402
-from armcal_ros.params import check_value, load_params_file  # noqa: E402
+from armcal_ros.settings import load_settings, with_noise_model  # noqa: E402
 from armcal_ros.sim.cell import simulate_cell  # noqa: E402
 from armcal_ros.sim.output import write_sim_bag  # noqa: E402
 
@@ -34,12 +34,12 @@ MODELS = ('fixed', 'independent', 'correlated', 'kinematic', 'hybrid', 'auto')
 
 def run_bag(label, bag, params, out_dir):
     """Collect once, solve with each model; return rows and raw numbers."""
-    values = load_params_file(params)
-    front = collect_samples(bag, values)
+    settings = load_settings(params)
+    front = collect_samples(bag, settings)
     rows, raw = [], {}
     for model in MODELS:
-        values['noise_model'] = check_value('noise_model', model)
-        res = solve_and_write(front, values, os.path.join(out_dir, label, model))
+        res = solve_and_write(front, with_noise_model(settings, model),
+                              os.path.join(out_dir, label, model))
         cal = res.outcome.calibration
         est = {k: c.camera for k, c in cal.cameras.items()}
         sc = compare(est, os.path.join(bag, 'ground_truth'))

@@ -28,7 +28,7 @@ from pipeline import detection_pass, kept_false  # noqa: E402
 
 from armcal_ros.compare import compare  # noqa: E402
 from armcal_ros.offline import collect_samples, solve_and_write  # noqa: E402
-from armcal_ros.params import check_value, load_params_file  # noqa: E402
+from armcal_ros.settings import load_settings, with_noise_model  # noqa: E402
 from armcal_ros.sim.cell import simulate_cell  # noqa: E402
 from armcal_ros.sim.cells import cell_parameters, CELLS  # noqa: E402
 from armcal_ros.sim.output import write_sim_bag  # noqa: E402
@@ -40,24 +40,24 @@ DEFAULT_CELLS = [k for k in CELLS if k != 'puma-3cam']   # the demo cell: bench/
 def run_cell(name, seed, duration, tmp):
     """Simulate ``name``, run the pipeline, solve with every model; return the raw figures."""
     cell = CELLS[name]
-    settings = cell.sim_settings()
+    sim = cell.sim_settings()
     bag = os.path.join(tmp, name)
-    write_sim_bag(simulate_cell(cell.scenario, seed, duration, settings), bag,
+    write_sim_bag(simulate_cell(cell.scenario, seed, duration, sim), bag,
                   compressed=cell.compressed, encoding=cell.encoding)
     params = os.path.join(tmp, name + '.yaml')
     with open(params, 'w') as f:
         yaml.safe_dump({'armcal': {'ros__parameters': cell_parameters(
-            settings, cell.compressed)}}, f)
-    values = load_params_file(params)
-    front = collect_samples(bag, values)
+            sim, cell.compressed)}}, f)
+    settings = load_settings(params)
+    front = collect_samples(bag, settings)
     gt = os.path.join(bag, 'ground_truth')
     with np.load(os.path.join(gt, 'markers.npz')) as truth_frames:
-        det = detection_pass(bag, values, dict(truth_frames))
+        det = detection_pass(bag, settings, dict(truth_frames))
     out = dict(description=cell.description, scenario=cell.scenario, counts=front.counts,
                samples=len(front.store), front_end_s=front.time_s, detection=det, models={})
     for model in MODELS:
-        values['noise_model'] = check_value('noise_model', model)
-        res = solve_and_write(front, values, os.path.join(tmp, name + '-out', model))
+        res = solve_and_write(front, with_noise_model(settings, model),
+                              os.path.join(tmp, name + '-out', model))
         cal = res.outcome.calibration
         sc = compare({k: c.camera for k, c in cal.cameras.items()}, gt)
         out['models'][model] = dict(

@@ -41,27 +41,20 @@ from _report import machine, table, write_json, write_section  # noqa: E402
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from armcal_ros.io.bag import iter_raw  # noqa: E402
-from armcal_ros.offline import build_collector, build_engine, stamp_ns  # noqa: E402
-from armcal_ros.params import load_params_file  # noqa: E402
+from armcal_ros.compose import build_pipeline  # noqa: E402
+from armcal_ros.io.message_fields import stamp_ns  # noqa: E402
+from armcal_ros.offline import feed, open_bag  # noqa: E402
+from armcal_ros.settings import load_settings  # noqa: E402
 
 
-def offline_samples(bag, values):
+def offline_samples(bag, settings):
     """Return the stamps of the samples the offline front end stores from ``bag``."""
-    chain, collector = build_collector(values)
-    engine = build_engine(values, chain)
-    jt = values['joint_states_topic']
-    cam_of = dict(zip(values['image_topics'], values['camera_names']))
+    pipe = build_pipeline(settings)
     out = []
-    for raw in iter_raw(bag, [jt] + list(cam_of)):
-        msg = raw.deserialize()
-        if raw.topic == jt:
-            out += collector.add_joint_state(stamp_ns(msg.header.stamp), msg.name,
-                                             msg.position)
-        else:
-            out += collector.add_image(cam_of[raw.topic], stamp_ns(msg.header.stamp), msg)
-    return [s.stamp_ns for s in out + collector.flush()
-            if engine.add_sample(s).value != 'dropped']
+    for event in open_bag(bag, settings).events():
+        out += feed(pipe.collector, event)
+    return [s.stamp_ns for s in out + pipe.collector.flush()
+            if pipe.engine.add_sample(s).value != 'dropped']
 
 
 def dwells_covered(stamps, gt):
@@ -210,10 +203,10 @@ def main():
     env.setdefault('ROS_LOG_DIR', os.path.join(tmp, 'log'))
     os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE',
                                            'ROS_LOG_DIR')})
-    values = load_params_file(args.params)
+    settings = load_settings(args.params)
     gt = np.load(os.path.join(args.bag, 'ground_truth', 'markers.npz'))
     t = time.perf_counter()
-    ref_stamps = offline_samples(args.bag, values)
+    ref_stamps = offline_samples(args.bag, settings)
     ref_dwells = dwells_covered(ref_stamps, gt)
     reference = len(ref_dwells)
     print(f'offline front end: {len(ref_stamps)} samples covering {reference} of '
@@ -239,8 +232,8 @@ def main():
     rows = []
     for r in runs:
         la = np.array(r['latency_s'])
-        js_sent = r['published'].get(values['joint_states_topic'], 0)
-        img_sent = sum(v for k, v in r['published'].items() if k in values['image_topics'])
+        js_sent = r['published'].get(settings.inputs.joint_states_topic, 0)
+        img_sent = sum(v for k, v in r['published'].items() if k in settings.inputs.image_topics)
         label = f'{r["rate"]:g}x' + (' (no solves)' if r['extra'] else '')
         rows.append([label, f'{r["wall_s"]:.0f}', f'{r["cpu_avg"]:.0f}',
                      f'{r["cpu_peak"]:.0f}', f'{r["joint_states"]}/{js_sent}',

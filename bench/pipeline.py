@@ -25,18 +25,19 @@ from _report import machine, table, write_json, write_section  # noqa: E402
 
 from armcal_ros.frontend.image_decode import decode_image_msg  # noqa: E402
 from armcal_ros.io.bag import bag_topics, iter_raw  # noqa: E402
-from armcal_ros.offline import collect_samples, solve_and_write, stamp_ns  # noqa: E402
-from armcal_ros.params import load_params_file  # noqa: E402
-from armcal_ros.pipeline import make_detectors  # noqa: E402
+from armcal_ros.compose import build_detectors  # noqa: E402
+from armcal_ros.io.message_fields import stamp_ns  # noqa: E402
+from armcal_ros.offline import collect_samples, solve_and_write  # noqa: E402
+from armcal_ros.settings import load_settings  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def detection_pass(bag, values, truth_frames):
+def detection_pass(bag, settings, truth_frames):
     """Detect on every frame; return timing and recall/false-detection counts."""
-    names = list(values['camera_names'])
-    topic_cam = dict(zip(values['image_topics'], names))
-    detectors = make_detectors(values, names)
+    names = list(settings.inputs.camera_names)
+    topic_cam = dict(zip(settings.inputs.image_topics, names))
+    detectors = build_detectors(settings, names)
     index = {(int(c), int(s)): k for k, (c, s) in
              enumerate(zip(truth_frames['frame_camera'], truth_frames['frame_stamp_ns']))}
     visible = hits = false = frames = 0
@@ -105,20 +106,20 @@ def main(argv=None):
     ap.add_argument('--bag', default=os.path.join(ROOT, 'bags', 'demo'))
     ap.add_argument('--params', default=os.path.join(ROOT, 'config', 'demo.yaml'))
     args = ap.parse_args(argv)
-    values = load_params_file(args.params)
+    settings = load_settings(args.params)
     topics = bag_topics(args.bag)
     gt = os.path.join(args.bag, 'ground_truth')
     truth_frames = np.load(os.path.join(gt, 'markers.npz'))
     duration = (truth_frames['frame_stamp_ns'].max() - truth_frames['frame_stamp_ns'].min()) / 1e9
-    n_frames = sum(topics[t][1] for t in values['image_topics'] if t in topics)
+    n_frames = sum(topics[t][1] for t in settings.inputs.image_topics if t in topics)
 
     c0, t0 = time.process_time(), time.perf_counter()
-    front = collect_samples(args.bag, values)
+    front = collect_samples(args.bag, settings)
     t_front, c_front = time.perf_counter() - t0, time.process_time() - c0
     c1, t1 = time.process_time(), time.perf_counter()
-    res = solve_and_write(front, values, os.path.join(ROOT, 'out', 'bench_pipeline'))
+    res = solve_and_write(front, settings, os.path.join(ROOT, 'out', 'bench_pipeline'))
     t_solve, c_solve = time.perf_counter() - t1, time.process_time() - c1
-    det = detection_pass(args.bag, values, truth_frames)
+    det = detection_pass(args.bag, settings, truth_frames)
     kept = kept_false(front, gt, res)
 
     speed = dict(duration_s=duration, frames=n_frames, front_end_s=t_front,
@@ -126,10 +127,10 @@ def main(argv=None):
                  fps=n_frames / t_front, realtime_ratio=duration / (t_front + t_solve),
                  realtime_ratio_cpu=duration / (c_front + c_solve), samples=len(front.store))
     rows = [['bag', f'{duration:.0f} s, {n_frames} frames (3 cameras), '
-                    f'{topics[values["joint_states_topic"]][1]} joint states'],
+                    f'{topics[settings.inputs.joint_states_topic][1]} joint states'],
             ['front end (read, pair, detect still frames, pool)',
              f'{t_front:.1f} s wall, {c_front:.1f} s CPU -> {len(front.store)} samples'],
-            [f'solve ({values["noise_model"]})', f'{t_solve:.2f} s wall'],
+            [f'solve ({settings.prior.model})', f'{t_solve:.2f} s wall'],
             ['frames per second (whole pipeline)', f'{n_frames / (t_front + t_solve):.0f}'],
             ['x real time (wall / CPU)',
              f'{speed["realtime_ratio"]:.1f} / {speed["realtime_ratio_cpu"]:.1f} '

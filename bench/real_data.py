@@ -32,8 +32,8 @@ from armcal_ros.core.adjustment import SolverSettings  # noqa: E402
 from armcal_ros.core.board_calibration import calibrate_board, CameraSpec  # noqa: E402
 from armcal_ros.core.priors import PriorSettings  # noqa: E402
 from armcal_ros.core.target import invert, rotation_angle_deg  # noqa: E402
-from armcal_ros.frontend.charuco import CharucoDetector  # noqa: E402
-from armcal_ros.io.rct_import import (board_data, charuco_board, detect_views,  # noqa: E402
+from armcal_ros.frontend.detectors import CharucoBoard, CharucoDetector  # noqa: E402
+from armcal_ros.io.rct_import import (board_data, detect_views,  # noqa: E402
                                       load_rct_folder, load_views, save_views)
 
 from _report import machine, table, write_json, write_section  # noqa: E402
@@ -52,13 +52,14 @@ def load(args):
         return data, uvs, ids, size, 'committed corner fixture', 0.0
     data = load_rct_folder(args.data)
     t0 = time.perf_counter()
-    uvs, ids, size = detect_views(data, CharucoDetector(charuco_board(data.target)))
+    board = CharucoBoard(*data.target.board_args, legacy=True)
+    uvs, ids, size = detect_views(data, CharucoDetector(board))
     dt = time.perf_counter() - t0
     if args.write_fixture:
         save_views(FIXTURE, data, uvs, ids, size, extra=dict(
             source='Jmeyer1292/robot_cal_tools rct_examples/data/test_set_charuco (commit '
-                   '2089a06d11b1); corners detected with armcal_ros.frontend.charuco (OpenCV '
-                   '5.0, legacy numbering)',
+                   '2089a06d11b1); corners detected with armcal_ros.frontend.detectors.charuco '
+                   '(OpenCV 5.0, legacy numbering)',
             license='Apache-2.0 (see LICENSE beside this file)'))
     return data, uvs, ids, size, f'detected in {len(uvs)} images', dt
 
@@ -123,7 +124,8 @@ def main():
     if not args.fixture and not os.path.isdir(args.data):
         sys.exit(f'{args.data} not found (use --fixture for the committed corners)')
     data, uvs, ids, size, source, t_detect = load(args)
-    bd = board_data(data.poses, charuco_board(data.target).points(), uvs, ids)
+    board = CharucoBoard(*data.target.board_args, legacy=True)
+    bd = board_data(data.poses, board.points(), uvs, ids)
     k12 = ('k1', 'k2')
     cols = {}
     for model in MODELS:

@@ -1,5 +1,5 @@
 """
-Solve time against the number of robot points, for each noise model, cold and warm (issue 6).
+Solve time against the number of robot points, for each noise model, cold and warm.
 
 Problem: the `mixed` scenario of bench/accuracy.py (PUMA 560, three cameras, 0.3 px noise) at
 N = 1,000 / 3,000 / 10,000 / 30,000 points.  Cold: the whole calibrate() from nothing (DLT with

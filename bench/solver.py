@@ -1,7 +1,7 @@
 """
 Estimator benchmark: three cameras, robot bias drawn from the paper's correlated prior.
 
-Scenario (issue 2): bias sigma 1 mm per axis, coherence length 0.3 m, squared-exponential kernel,
+Scenario: bias sigma 1 mm per axis, coherence length 0.3 m, squared-exponential kernel,
 0.3 px image noise, N = 100 / 300 / 1000 robot points, five seeds.  Scored by triangulating 500
 fresh true points with the estimated cameras (their true projections, noise-free, so the score
 measures the cameras alone).  Models: oracle (the true points given as fixed), fixed,

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from armcal_ros.frontend.charuco import CharucoBoard, CharucoDetector
-from armcal_ros.frontend.detectors import _aruco_dictionary, Detection
+from armcal_ros.frontend.detectors import CharucoBoard, CharucoDetector, Detection
+from armcal_ros.frontend.detectors.base import aruco_dictionary
 from armcal_ros.frontend.image_decode import encode_raw_image
 from armcal_ros.frontend.pairing import DwellPooler, PairedFrame, PairStatus
 from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.params import BY_NAME, check_value
-from armcal_ros.pipeline import SampleCollector
+from armcal_ros.frontend.collector import SampleCollector
 from test_charuco import project, render
 
 BOARD = CharucoBoard(7, 5, 0.04, 0.02, 'DICT_6X6_250')
@@ -37,7 +37,7 @@ def _full_dictionary_detector(board):
 
 def _paste_marker(img, marker_id, top_left, side=90):
     """Paste a marker of BOARD's dictionary (white quiet zone around it) into ``img``."""
-    tag = cv2.aruco.generateImageMarker(_aruco_dictionary(BOARD.dictionary), marker_id, side)
+    tag = cv2.aruco.generateImageMarker(aruco_dictionary(BOARD.dictionary), marker_id, side)
     tag = cv2.copyMakeBorder(tag, 15, 15, 15, 15, cv2.BORDER_CONSTANT, value=255)
     r, c = top_left
     img[r:r + tag.shape[0], c:c + tag.shape[1]] = cv2.GaussianBlur(tag, (0, 0), 0.7)
@@ -55,7 +55,7 @@ def test_board_only_dictionary_keeps_the_corners(tilt, legacy, foreign):
         # A marker of the same dictionary that is not on the board (id 200) next to it.
         img = _paste_marker(img, 200, (800, 1100))
         _, found, _ = cv2.aruco.ArucoDetector(
-            _aruco_dictionary(board.dictionary)).detectMarkers(img)
+            aruco_dictionary(board.dictionary)).detectMarkers(img)
         assert 200 in found.ravel()
     uv, ids = CharucoDetector(board).detect_arrays(img)
     corners, cv_ids, _, _ = _full_dictionary_detector(board).detectBoard(img)

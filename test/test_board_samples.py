@@ -1,5 +1,5 @@
 """
-ChArUco boards through the shared collector and engine (issue 7): joint input and pose input.
+ChArUco boards through the shared collector and engine: joint input and pose input.
 
 A Cartesian robot with a roll-pitch-yaw wrist (three prismatic joints, three revolute ones: its
 inverse kinematics is exact and trivial) carries the rendered board of test_rct_cli.py in front of
@@ -25,7 +25,7 @@ from armcal_ros.frontend.store import AddResult, FILE_NAME, SampleStore
 from armcal_ros.io.bag import BagWriter
 from armcal_ros.io.calib_files import read_camera_info
 from armcal_ros.offline import calibrate_bag, collect_samples, run
-from armcal_ros.params import load_params_file
+from armcal_ros.settings import load_settings
 from armcal_ros.robot.kinematics import KinematicChain
 from test_charuco_pose_bag import view_poses, write_bag as write_pose_bag
 from test_rct_cli import BOARD, K, MOUNT, params, render, T_CAM_BASE
@@ -132,8 +132,8 @@ def test_charuco_with_joint_input_calibrates_through_the_cli(joint_bag, tmp_path
 
 
 def test_charuco_joint_input_board_samples_store_round_trip(joint_bag, tmp_path):
-    values = load_params_file(_joint_params(joint_bag, tmp_path))
-    front = collect_samples(str(joint_bag / 'bag'), values)
+    front = collect_samples(str(joint_bag / 'bag'),
+                            load_settings(_joint_params(joint_bag, tmp_path)))
     samples = sorted(front.store.samples, key=lambda s: s.id)
     assert len(samples) == 8
     # About 9 still frames per 1 s dwell; the board is searched in the first
@@ -162,9 +162,8 @@ def test_charuco_joint_input_board_samples_store_round_trip(joint_bag, tmp_path)
 
 
 def test_max_views_per_dwell_parameter_reaches_the_front_end(joint_bag, tmp_path):
-    values = load_params_file(_joint_params(joint_bag, tmp_path))
-    values['max_views_per_dwell'] = 1
-    front = collect_samples(str(joint_bag / 'bag'), values)
+    settings = load_settings(_joint_params(joint_bag, tmp_path), {'max_views_per_dwell': 1})
+    front = collect_samples(str(joint_bag / 'bag'), settings)
     assert len(front.store) == 8
     assert front.counts['detections'] == 8
     assert all(s.observations['cam'].n_frames == 1 for s in front.store.samples)
@@ -172,8 +171,8 @@ def test_max_views_per_dwell_parameter_reaches_the_front_end(joint_bag, tmp_path
 
 @pytest.mark.slow
 def test_engine_solves_board_samples_and_resumes_its_mount(joint_bag, tmp_path):
-    values = load_params_file(_joint_params(joint_bag, tmp_path))
-    front = collect_samples(str(joint_bag / 'bag'), values)
+    front = collect_samples(str(joint_bag / 'bag'),
+                            load_settings(_joint_params(joint_bag, tmp_path)))
     board = BoardTarget(BOARD.points(), None, estimate_mount=True)
     settings = EngineSettings(['cam'], PriorSettings('correlated'),
                               SolverSettings(pixel_sigma=0.2, free_distortion=()),
@@ -200,9 +199,9 @@ def test_engine_solves_board_samples_and_resumes_its_mount(joint_bag, tmp_path):
 def test_charuco_pose_input_through_the_collector(tmp_path):
     bag = str(tmp_path / 'bag')
     write_pose_bag(bag)
-    values = load_params_file(params(tmp_path / 'p.yaml', pose_topic='/tool_pose',
-                                     **BOARD_PARAMS))
-    res = calibrate_bag(bag, values, tmp_path / 'out')
+    settings = load_settings(params(tmp_path / 'p.yaml', pose_topic='/tool_pose',
+                                    **BOARD_PARAMS))
+    res = calibrate_bag(bag, settings, tmp_path / 'out')
     rep = res.report
     # 8 dwells; the last pose's second still frame is the same place: merged into its view.
     assert rep['n_samples'] == 8 and rep['samples']['merged'] == 1

@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from armcal_ros.frontend.charuco import CharucoBoard, CharucoDetector
-from armcal_ros.frontend.detectors import make_detector
+from armcal_ros.frontend.detectors import CharucoBoard, CharucoDetector, make_detector
 
 DATA = os.path.join(os.path.dirname(__file__), '..', '..', 'shared', 'data',
                     'rct_test_set_charuco')

@@ -11,7 +11,7 @@ from armcal_ros.core.camera import Camera
 from armcal_ros.core.priors import PriorSettings
 from armcal_ros.core.target import (correct_mount, hand_eye, invert, mount_jacobian,
                                     mount_points, pose_matrix, rotation_angle_deg)
-from armcal_ros.frontend.charuco import CharucoBoard
+from armcal_ros.frontend.detectors import CharucoBoard
 
 
 def _T(rotvec, t):

@@ -7,33 +7,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from armcal_ros.core.target import invert
-from armcal_ros.frontend.pose_input import PoseTrack
+from armcal_ros.core.target import invert, pose_vector
 from armcal_ros.io.bag import BagWriter
 from armcal_ros.io.calib_files import read_camera_info
-from armcal_ros.io.rct_import import pose_vector
 from armcal_ros.offline import CalibrateError, run
 from test_rct_cli import K, MOUNT, params, render, T_CAM_BASE
 
 POSE = 'geometry_msgs/msg/PoseStamped'
-
-
-def test_pose_track_interpolates_and_judges_stillness():
-    tr = PoseTrack(max_gap_s=0.1)
-    q0 = [0, 0, 0, 1]
-    q1 = Rotation.from_rotvec([0, 0, 0.02]).as_quat()
-    tr.add(0, [0, 0, 0], q0)
-    tr.add(50_000_000, [0.01, 0, 0], q1)
-    tr.add(300_000_000, [0.01, 0, 0], q1)
-    at = tr.at(25_000_000, radius=0.5)
-    assert at.status == 'ok'
-    assert np.allclose(at.pose[:3, 3], [0.005, 0, 0])
-    assert np.isclose(Rotation.from_matrix(at.pose[:3, :3]).magnitude(), 0.01)
-    assert np.isclose(at.speed, 0.01 / 0.05 + 0.02 / 0.05 * 0.5)
-    assert tr.at(200_000_000).status == 'gap'
-    assert tr.at(-1).status == 'outside' and tr.at(400_000_000).status == 'outside'
-    with pytest.raises(ValueError, match='unit quaternion'):
-        tr.add(1, [0, 0, 0], [0, 0, 0, 3])
 
 
 def view_poses(n_views, seed=0):
@@ -91,9 +71,10 @@ def test_calibrate_a_pose_input_bag(bag, tmp_path, capsys):
     import json
     with open(os.path.join(out, 'report.json')) as f:
         report = json.load(f)
-    counts = report['input']['counts']
-    # 8 dwells plus the last pose's second frame (no motion after it); 7 frames while moving.
-    assert counts['views'] == 9 and counts['moving'] == 7
+    counts = report['front_end']
+    # 8 dwells, one sample each (the last pose's second still frame joins its dwell); 7 frames
+    # while moving.
+    assert report['n_samples'] == 8 and counts['frames_moving'] == 7
     cam = read_camera_info(os.path.join(out, 'cam.yaml'))
     assert abs(cam.fx - K[0, 0]) < 3 and abs(cam.cy - K[1, 2]) < 3
     assert np.linalg.norm(np.array(report['target']['T_link_target'][:3]) -
@@ -113,7 +94,7 @@ def test_pose_input_needs_a_board_and_the_topic(bag, tmp_path):
 
 
 def test_charuco_with_joint_states_takes_the_joint_front_end(bag, tmp_path):
-    # No longer refused (issue 7): a board with joint input is collected from joint states,
+    # Not refused: a board with joint input is collected from joint states,
     # so a bag without them says so; the board's size must be given.
     p = params(tmp_path / 'p.yaml', robot_description='<robot name="x"/>',
                charuco_rows=7, charuco_cols=5, charuco_square_size=0.04,
@@ -121,8 +102,10 @@ def test_charuco_with_joint_states_takes_the_joint_front_end(bag, tmp_path):
     with pytest.raises(CalibrateError, match='joint_states_topic'):
         run(argparse.Namespace(bag=bag, params=p, output=str(tmp_path / 'o'),
                                noise_model=None, quiet=True))
+    from armcal_ros.compose import build_board
     from armcal_ros.params import defaults
-    from armcal_ros.pipeline import make_detectors
-    values = dict(defaults(), marker_type='charuco')
+    from armcal_ros.settings import settings_from_values
+    settings = settings_from_values(dict(defaults(), marker_type='charuco',
+                                         robot_description='<robot name="x"/>'))
     with pytest.raises(ValueError, match='charuco_rows'):
-        make_detectors(values, ['cam'])
+        build_board(settings)

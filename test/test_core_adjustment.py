@@ -16,7 +16,8 @@ from scipy.spatial.transform import Rotation
 from armcal_ros.core.adjustment import adjust, Observations, SolverSettings
 from armcal_ros.core.calibration import calibrate, CameraSpec
 from armcal_ros.core.camera import Camera, project
-from armcal_ros.core.priors import kernel_matrix, PriorSettings
+from armcal_ros.core.kernels import kernel_matrix
+from armcal_ros.core.priors import PriorSettings
 from armcal_ros.sim.synthetic import make_problem
 
 

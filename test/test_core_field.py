@@ -11,7 +11,8 @@ from armcal_ros.core.adjustment import _Problem, adjust, SolverSettings
 from armcal_ros.core.calibration import calibrate
 from armcal_ros.core.evaluation import triangulate
 from armcal_ros.core.field import DenseDesign, LatticeField, StackedDesign
-from armcal_ros.core.priors import kernel_matrix, PointPrior, PriorSettings
+from armcal_ros.core.kernels import kernel_matrix
+from armcal_ros.core.priors import PointPrior, PriorSettings
 from armcal_ros.sim.robot_points import make_robot_problem
 from armcal_ros.sim.synthetic import make_problem
 
@@ -99,7 +100,7 @@ def test_reduced_system_equals_brute_force_elimination():
 
 
 def test_lattice_form_agrees_with_the_exact_prior():
-    """Issue 6: camera centres within half their std, test points within 0.15 mm."""
+    """Lattice against exact: camera centres within half their std, points within 0.15 mm."""
     prob = make_problem(400, 3, bias_sigma=1e-3, coherence_length=0.3, pixel_sigma=0.3)
     s = SolverSettings(pixel_sigma=0.3)
     fx = calibrate(prob.specs, prob.measured, prob.obs, PriorSettings('fixed'), s)

@@ -15,7 +15,7 @@ from armcal_ros.core.evaluation import similarity_fit
 from armcal_ros.core.kinematic_prior import (base_motion_gauge, kinematic_sigmas,
                                              rigid_motion_jacobian)
 from armcal_ros.sim.cameras import ring_of_cameras
-from armcal_ros.sim.cell import _load_chain, SimSettings
+from armcal_ros.sim.cell import load_chain, SimSettings
 
 DEG = np.pi / 180.0
 
@@ -23,7 +23,7 @@ DEG = np.pi / 180.0
 @pytest.fixture(scope='module')
 def arm():
     s = SimSettings()
-    chain = _load_chain(s)
+    chain = load_chain(s)
     point = np.asarray(s.marker_offset, float)
     q = chain.sample_configurations(300, np.random.default_rng(0))
     sigma = kinematic_sigmas(chain.error_names)

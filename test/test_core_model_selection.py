@@ -7,14 +7,12 @@ import pytest
 from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.calibration import calibrate
 from armcal_ros.core.kinematic_prior import KinematicData
-from armcal_ros.core.model_selection import (_HeldOut, _local_lengths, _occam_choice,
-                                             _search_scale, Candidate, DEFAULT_GRID,
-                                             estimate_pixel_sigma, HOLDOUT_FOLDS,
-                                             pooled_pixel_sigma,
-                                             HYBRID_MAX_L_FRACTION,
-                                             HOLDOUT_Z, OCCAM_MARGIN, SCALE_BOUNDS,
-                                             SCALE_EXTENSIONS, SCALE_REFINEMENTS,
-                                             SCALE_TOLERANCE, select_model)
+from armcal_ros.core.holdout import HeldOut, HOLDOUT_FOLDS, HOLDOUT_Z
+from armcal_ros.core.image_noise import estimate_pixel_sigma, pooled_pixel_sigma
+from armcal_ros.core.model_selection import (_local_lengths, _occam_choice, _search_scale,
+                                             Candidate, DEFAULT_GRID, HYBRID_MAX_L_FRACTION,
+                                             OCCAM_MARGIN, SCALE_BOUNDS, SCALE_EXTENSIONS,
+                                             SCALE_REFINEMENTS, SCALE_TOLERANCE, select_model)
 from armcal_ros.core.priors import PriorSettings
 from armcal_ros.sim.robot_points import make_robot_problem
 from armcal_ros.sim.synthetic import make_problem
@@ -209,8 +207,8 @@ def _heldout_case(kinematics_of):
     s = SolverSettings(pixel_sigma=0.3)
     cams, inl = _fixed(prob, s)
     quick = replace(s, max_gate_rounds=0, max_iterations=30, ftol=1e-6)
-    check = _HeldOut(cams, prob.measured, prob.obs, quick, kinematics_of(prob.kinematics), inl,
-                     np.random.default_rng(0))
+    check = HeldOut(cams, prob.measured, prob.obs, quick, kinematics_of(prob.kinematics), inl,
+                    np.random.default_rng(0))
     simple = Candidate(PriorSettings('independent'), 0.0, 0.0, True)
     # the evidence is set to win by far more than the margin: only the held-out check decides
     complex_ = Candidate(PriorSettings('kinematic'), 10.0 * OCCAM_MARGIN, 0.0, True)

@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from armcal_ros.core.priors import kernel_function, kernel_matrix, PointPrior, PriorSettings
+from armcal_ros.core.kernels import kernel_function, kernel_matrix
+from armcal_ros.core.priors import PointPrior, PriorSettings
 
 
 def test_kernels_at_known_distances():

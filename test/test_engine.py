@@ -4,7 +4,9 @@ import pytest
 
 from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.priors import PriorSettings
-from armcal_ros.engine import CalibrationEngine, EngineSettings, load_calibration, pose_covariance
+from armcal_ros.core.uncertainty import pose_covariance
+from armcal_ros.engine import CalibrationEngine, EngineSettings
+from armcal_ros.io.results_files import load_calibration
 from armcal_ros.frontend.samples import Observation, Sample
 from armcal_ros.sim.synthetic import make_problem
 

@@ -21,7 +21,7 @@ from armcal_ros.compare import compare
 from armcal_ros.io.bag import BagWriter, iter_raw, jazzy_typestore
 from armcal_ros.io.calib_files import read_cameras
 from armcal_ros.offline import calibrate_bag, CalibrateError
-from armcal_ros.params import load_params_file
+from armcal_ros.settings import load_settings
 from armcal_ros.sim.cell import simulate_cell
 from armcal_ros.sim.output import write_sim_bag
 
@@ -85,7 +85,7 @@ def test_missing_camera_topic_is_reported_and_others_calibrate(sim_bag, tmp_path
     cut = tmp_path / 'no_cam3'
     _copy_bag(bag, cut, lambda r: None if r.topic == '/cam3/image_raw' else r.rawdata)
     logs = []
-    res = calibrate_bag(cut, load_params_file(params), tmp_path / 'out', log=logs.append)
+    res = calibrate_bag(cut, load_settings(params), tmp_path / 'out', log=logs.append)
     assert any('cam3' in w and 'no messages' in w for w in res.warnings)
     assert any('cam3' in m for m in logs)
     assert res.report['cameras']['cam3']['status'] == 'not calibrated'
@@ -103,7 +103,7 @@ def test_corrupt_messages_are_counted_and_skipped(sim_bag, tmp_path):
             return raw.rawdata[:len(raw.rawdata) // 3]      # truncated CDR
         return raw.rawdata
     _copy_bag(bag, bad, edit)
-    res = calibrate_bag(bad, load_params_file(params), tmp_path / 'out')
+    res = calibrate_bag(bad, load_settings(params), tmp_path / 'out')
     assert res.report['front_end']['corrupt_message'] >= 50
     _check_against_truth(tmp_path / 'out', bag / 'ground_truth')
 
@@ -124,7 +124,7 @@ def test_unknown_joint_names_are_counted_and_the_rest_used(sim_bag, tmp_path):
         msg.name = ['elbow_typo' if x == 'joint_3' else x for x in msg.name]
         return bytes(ts.serialize_cdr(msg, raw.msgtype))
     _copy_bag(bag, bad, edit)
-    res = calibrate_bag(bad, load_params_file(params), tmp_path / 'out')
+    res = calibrate_bag(bad, load_settings(params), tmp_path / 'out')
     rejected = sum(v for k, v in res.report['front_end'].items() if k.startswith('joint_state_'))
     assert rejected >= 0.09 * n['i']
     _check_against_truth(tmp_path / 'out', bag / 'ground_truth')
@@ -132,12 +132,11 @@ def test_unknown_joint_names_are_counted_and_the_rest_used(sim_bag, tmp_path):
 
 def test_clear_errors_for_unusable_input(sim_bag, tmp_path):
     bag, params = sim_bag
-    values = load_params_file(params)
-    values['joint_states_topic'] = '/arm/joint_states'
+    settings = load_settings(params, {'joint_states_topic': '/arm/joint_states'})
     with pytest.raises(CalibrateError, match='/arm/joint_states'):
-        calibrate_bag(bag, values, tmp_path / 'out')
+        calibrate_bag(bag, settings, tmp_path / 'out')
     with pytest.raises(CalibrateError, match='cannot open bag'):
-        calibrate_bag(tmp_path / 'nothing', load_params_file(params), tmp_path / 'out')
+        calibrate_bag(tmp_path / 'nothing', load_settings(params), tmp_path / 'out')
     proc = subprocess.run([sys.executable, '-m', 'armcal_ros.cli', 'calibrate', str(bag),
                            '--params', str(params), '--output', str(tmp_path / 'o'),
                            '--noise-model', 'magic'], capture_output=True, text=True,

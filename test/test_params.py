@@ -1,8 +1,8 @@
 """Parameter table: types, checks by name, parameter files as ROS 2 writes them."""
 import pytest
 
-from armcal_ros.params import (check_all, check_value, defaults, load_params_file,
-                               prior_settings, solver_settings)
+from armcal_ros.params import check_all, check_value, defaults, load_params_file
+from armcal_ros.settings import prior_settings, solver_settings
 
 
 def test_defaults_pass_their_own_checks():

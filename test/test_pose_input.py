@@ -1,5 +1,5 @@
 """
-Pose input for point targets: a measured link pose instead of joint angles (issue 7).
+Pose input for point targets: a measured link pose instead of joint angles.
 
 One 30 s simulated bag carries both the joint states and the marker link's pose (TransformStamped,
 nominal forward kinematics at the joint readings, as a controller reports it).  Calibrating it
@@ -25,8 +25,9 @@ from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.io.bag import bag_topics
 from armcal_ros.io.calib_files import read_cameras
 from armcal_ros.offline import calibrate_bag, CalibrateError, run
-from armcal_ros.params import check_all, defaults
-from armcal_ros.pipeline import SampleCollector
+from armcal_ros.params import defaults
+from armcal_ros.frontend.collector import SampleCollector
+from armcal_ros.settings import settings_from_values
 from armcal_ros.sim.cell import simulate_cell
 from armcal_ros.sim.output import write_sim_bag
 
@@ -48,8 +49,7 @@ def _values(**kw):
     v.update(marker_link='marker', min_samples=12, noise_model='correlated',
              robot_description_file=URDF)
     v.update(kw)
-    check_all(v)
-    return v
+    return settings_from_values(v)
 
 
 def _cameras(out):

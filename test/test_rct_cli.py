@@ -9,10 +9,9 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from armcal_ros.core.target import invert
-from armcal_ros.frontend.charuco import CharucoBoard
+from armcal_ros.core.target import invert, pose_vector
+from armcal_ros.frontend.detectors import CharucoBoard
 from armcal_ros.io.calib_files import read_camera_info
-from armcal_ros.io.rct_import import pose_vector
 from armcal_ros.offline import CalibrateError, run
 
 W, H = 800, 600
@@ -66,7 +65,8 @@ def write_folder(root, n_views=8, seed=0):
 
 def params(path, **extra):
     p = dict(camera_names=['cam'], image_topics=['/cam/image_raw'], marker_type='charuco',
-             estimate_marker_offset=True, noise_model='fixed', free_distortion=[])
+             estimate_marker_offset=True, noise_model='fixed', free_distortion=[],
+             min_samples=3)
     p.update(extra)
     with open(path, 'w') as f:
         yaml.safe_dump({'armcal': {'ros__parameters': p}}, f)

@@ -9,7 +9,8 @@ from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.board_calibration import calibrate_board, CameraSpec
 from armcal_ros.core.priors import PriorSettings
 from armcal_ros.core.target import invert, rotation_angle_deg
-from armcal_ros.io.rct_import import (board_data, charuco_board, is_rct_folder, load_rct_folder,
+from armcal_ros.frontend.detectors import CharucoBoard
+from armcal_ros.io.rct_import import (board_data, is_rct_folder, load_rct_folder,
                                       load_views, RctFormatError)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -23,7 +24,7 @@ needs_data = pytest.mark.skipif(not os.path.isdir(DATA),
 
 def fixture_problem():
     data, uvs, ids, size, _ = load_views(FIXTURE)
-    board = charuco_board(data.target)
+    board = CharucoBoard(*data.target.board_args, legacy=True)
     return data, board_data(data.poses, board.points(), uvs, ids), size
 
 
@@ -78,10 +79,10 @@ def test_legacy_numbering_matters_for_the_given_mount():
     spec = [CameraSpec('camera', *size)]
     rms = {}
     for legacy in (True, False):
-        board = charuco_board(data.target, legacy=legacy)
+        board = CharucoBoard(*data.target.board_args, legacy=legacy)
         # Fixture ids are legacy: map back to OpenCV ids for the new-style board.
-        new_ids = ids if legacy else [charuco_board(data.target).ids_from_opencv(i)
-                                      for i in ids]
+        legacy_board = CharucoBoard(*data.target.board_args, legacy=True)
+        new_ids = ids if legacy else [legacy_board.ids_from_opencv(i) for i in ids]
         bd = board_data(data.poses, board.points(), uvs, new_ids)
         res = calibrate_board(spec, bd, PriorSettings(model='fixed'),
                               SolverSettings(free_distortion=('k1', 'k2')),

@@ -201,9 +201,9 @@ def write_params(path, **values):
 @pytest.fixture(scope='module')
 def offline(sim, tmp_path_factory):
     from armcal_ros.offline import calibrate_bag
-    from armcal_ros.params import load_params_file
+    from armcal_ros.settings import load_settings
     root = tmp_path_factory.mktemp('offline')
-    values = load_params_file(write_params(root / 'params.yaml'))
+    values = load_settings(write_params(root / 'params.yaml'))
     return calibrate_bag(sim.bag, values, str(root / 'out')).report
 
 
@@ -220,12 +220,13 @@ def start_node(env, params, log_path):
 
 
 def replay_and_calibrate(client, env, params, bag, log_dir, duration, rate, procs, diag,
-                         info):
+                         info, delay=0.5):
     """
     Start the node, replay ``bag`` into it and call ~/calibrate once its solve has ended.
 
     The node runs with ``params``; every camera's CameraInfo in ``info`` (the recorder lists)
-    is awaited after the call.  The processes go into ``procs`` (the caller kills them).
+    is awaited after the call.  The replay waits ``delay`` seconds for discovery first.  The
+    processes go into ``procs`` (the caller kills them).
     Returns (node, monotonic time of the call).
     """
     node = start_node(env, params, log_dir / 'node.log')
@@ -234,7 +235,7 @@ def replay_and_calibrate(client, env, params, bag, log_dir, duration, rate, proc
                'node diagnostics')
     assert node.alive(), node.log()
     replay = Proc([sys.executable, '-m', 'armcal_ros.cli', 'replay', str(bag), '--rate',
-                   str(rate), '--delay', '0.5'], env, log_dir / 'replay.log')
+                   str(rate), '--delay', str(delay)], env, log_dir / 'replay.log')
     procs.append(replay)
     replay.p.wait(timeout=duration / rate + 60.0)
     assert replay.p.returncode == 0, replay.log()

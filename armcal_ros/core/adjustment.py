@@ -51,7 +51,8 @@ from scipy.linalg import cho_factor, cho_solve, LinAlgError
 from armcal_ros.core.camera import (Camera, DISTORTION_NAMES, INTRINSIC_NAMES,
                                     project_with_jacobians)
 from armcal_ros.core.geometry import skew
-from armcal_ros.core.priors import kernel_matrix, PointPrior, PriorSettings
+from armcal_ros.core.kernels import kernel_matrix
+from armcal_ros.core.priors import PointPrior, PriorSettings
 from armcal_ros.core.robust import check_loss, rho, weights
 
 # Nielsen (1999) shrinks lambda by at most 3 per good step; with steps that match the model well

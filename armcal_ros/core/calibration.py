@@ -1,10 +1,10 @@
 """
 The whole estimator: initialise every camera, adjust with ``fixed``, then with the chosen model.
 
-This is the sequence of DESIGN.md section 3: DLT + RANSAC per camera (no hand-given guess), a
-``fixed``-model adjustment (points held at the robot's measurements) to bring in distortion, then
-the chosen noise model warm-started from it.  Cameras that cannot be initialised (too few or
-degenerate points) are reported and left out; the others are still calibrated.
+The sequence: DLT + RANSAC per camera (no hand-given guess), a ``fixed``-model adjustment
+(points held at the robot's measurements) to bring in distortion, then the chosen noise model
+warm-started from it.  Cameras that cannot be initialised (too few or degenerate points) are
+reported and left out; the others are still calibrated.
 """
 
 import time
@@ -17,6 +17,7 @@ from armcal_ros.core.adjustment import (AdjustmentResult, Observations, SolverSe
                                         adjust)
 from armcal_ros.core.camera import Camera
 from armcal_ros.core.initialisation import initialise_camera, InitResult
+from armcal_ros.core.model_selection import ModelSelection, select_model
 from armcal_ros.core.priors import KINEMATIC_MODELS, PriorSettings
 
 #: Initial LM damping of the stage after ``fixed`` (see :func:`calibrate`).
@@ -50,7 +51,7 @@ class CalibrationResult:
     stages: List[Tuple[str, float, int, float]] = field(default_factory=list)
     time_s: float = 0.0
     camera_index: Dict[str, int] = field(default_factory=dict)
-    selection: Optional[object] = None      # model_selection.ModelSelection for 'auto'
+    selection: Optional[ModelSelection] = None      # the choice of 'auto'
 
     @property
     def cameras(self):
@@ -78,7 +79,7 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
     :func:`~armcal_ros.core.model_selection.select_model` after the ``fixed`` stage
     (``result.selection`` says what was chosen and why); ``pooled_sigma_px`` is its image
     noise where the free network cannot estimate one
-    (:func:`~armcal_ros.core.model_selection.pooled_pixel_sigma`).
+    (:func:`~armcal_ros.core.image_noise.pooled_pixel_sigma`).
     """
     t0 = time.perf_counter()
     prior = (prior or PriorSettings()).validate()
@@ -131,7 +132,6 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
         inliers = fixed.inliers
         final = fixed
     if prior.model == 'auto':
-        from armcal_ros.core.model_selection import select_model
         selection = select_model(cams, measured, sub, prior, model_settings, kinematics,
                                  inliers, rng=rng, pooled_sigma_px=pooled_sigma_px)
         final = selection.result

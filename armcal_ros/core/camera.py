@@ -21,7 +21,8 @@ from typing import Tuple
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from armcal_ros.core.geometry import skew  # noqa: F401  (re-exported)
+from armcal_ros.core.geometry import skew
+
 
 DISTORTION_NAMES = ('k1', 'k2', 'p1', 'p2', 'k3')
 INTRINSIC_NAMES = ('fx', 'fy', 'cx', 'cy')

@@ -6,7 +6,7 @@ Accuracy measures against ground truth, used by tests and benchmarks.
 * :func:`similarity_fit` - the least-squares similarity (scale, rotation, translation) between two
   point sets (Umeyama, 1991).
 * :func:`score_cameras` - absolute and shape triangulation error on fresh true points,
-  camera-centre error and focal error: the numbers DESIGN.md section 3 asks for.
+  camera-centre error and focal error: the accuracy numbers of docs/BENCHMARKS.md.
 
 Images fix the cameras only up to a similarity; only the robot's positions pin the absolute
 frame.  So both are reported: absolute error in the robot base frame, and shape error after the

@@ -32,7 +32,7 @@ from typing import List, Sequence
 
 import numpy as np
 
-from armcal_ros.core.priors import kernel_function, kernel_matrix
+from armcal_ros.core.kernels import kernel_function, kernel_matrix
 
 
 class DenseDesign:

@@ -10,16 +10,16 @@ stacked point-major (x0, y0, z0, x1, ...)::
     correlated   X ~ N(X^, (s_b^2 K_L + s_n^2 I_N) (x) I_3),
                  K_L[i, k] = k(|X^_i - X^_k| / L)
 
-with a stationary kernel k: squared exponential exp(-d^2 / 2L^2) (the default), exponential
-exp(-d/L), or Matern-3/2 (1 + sqrt(3) d/L) exp(-sqrt(3) d/L).  Each coordinate axis carries an
-independent copy of the same scalar process.  The small independent term s_n keeps the matrix
-positive definite (0.02 mm was enough in double precision).
+with a stationary kernel k (squared exponential, exponential or Matern-3/2:
+:mod:`armcal_ros.core.kernels`).  Each coordinate axis carries an independent copy of the same
+scalar process.  The small independent term s_n keeps the matrix positive definite (0.02 mm is
+enough in double precision).
 
 A prior enters the objective as the quadratic (X - X^)^T P (X - X^) with precision P = Cov^-1;
 the solver needs only P, either as N 3x3 blocks (``block_precision``) or dense
 (``scalar_precision``, the N x N factor of the Kronecker product).
 
-Beyond the paper (DESIGN.md section 3), priors with global parameters g ~ N(0, I)::
+Beyond the paper (docs/NOISE_MODELS.md), priors with global parameters g ~ N(0, I)::
 
     X_i = X^_i + A_i g + e_i,   e_i ~ N(0, s_i^2 I)
 
@@ -35,40 +35,18 @@ The solver keeps g next to the cameras in the reduced system; the points stay 3x
 ``auto`` is not a prior but a request to choose one (:mod:`armcal_ros.core.model_selection`).
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
-KERNELS = ('squared_exponential', 'exponential', 'matern32')
+from armcal_ros.core.field import DenseDesign, LatticeField, StackedDesign
+from armcal_ros.core.kernels import kernel_matrix, KERNELS
+
 NOISE_MODELS = ('fixed', 'independent', 'correlated', 'kinematic', 'hybrid', 'auto')
 FIELD_FORMS = ('auto', 'exact', 'lattice')
 #: Models that need joint angles (the kinematic Jacobian).
 KINEMATIC_MODELS = ('kinematic', 'hybrid')
-
-
-def kernel_function(d, coherence_length, kernel='squared_exponential'):
-    """Evaluate the unit-variance stationary kernel at distances ``d`` (any shape)."""
-    if coherence_length <= 0:
-        raise ValueError(f'coherence_length must be > 0, got {coherence_length}')
-    s = np.asarray(d, float) / coherence_length
-    if kernel == 'squared_exponential':
-        return np.exp(-0.5 * s * s)
-    if kernel == 'exponential':
-        return np.exp(-s)
-    if kernel == 'matern32':
-        a = np.sqrt(3.0) * s
-        return (1.0 + a) * np.exp(-a)
-    raise ValueError(f'kernel must be one of {KERNELS}, got {kernel!r}')
-
-
-def kernel_matrix(A, B, coherence_length, kernel='squared_exponential'):
-    """Kernel matrix k(|A_i - B_k|; L) for point sets A (N, 3) and B (M, 3)."""
-    A = np.asarray(A, float)
-    B = np.asarray(B, float)
-    d2 = (np.sum(A * A, 1)[:, None] + np.sum(B * B, 1)[None, :] - 2.0 * A @ B.T)
-    d = np.sqrt(np.maximum(d2, 0.0))
-    return kernel_function(d, coherence_length, kernel)
 
 
 @dataclass
@@ -124,6 +102,24 @@ class PriorSettings:
         return self
 
 
+def canonical_settings(ps):
+    """Return ``ps``, or for a hybrid with one part switched off the settings of that model."""
+    if ps.model == 'hybrid' and ps.kinematic_scale == 0:
+        return replace(ps, model='correlated')
+    if ps.model == 'hybrid' and ps.bias_sigma == 0:
+        return replace(ps, model='kinematic')
+    return ps
+
+
+def prior_key(ps):
+    """Return a key of the prior ``ps`` solves (a hybrid with one part off is that model)."""
+    model = canonical_settings(ps).model
+    field_part = (ps.bias_sigma, ps.coherence_length) if model in (
+        'correlated', 'hybrid') else None
+    kin = ps.kinematic_scale if model in KINEMATIC_MODELS else None
+    return (model, field_part, kin, ps.point_sigma if model != 'fixed' else None)
+
+
 class PointPrior:
     """
     Gaussian prior on the points: cost (X - X^)^T P (X - X^).
@@ -177,7 +173,6 @@ class PointPrior:
             self._kinv = cho_solve(self._chol, np.eye(n))
 
     def _init_global(self, settings, kinematics):
-        from armcal_ros.core.field import DenseDesign, LatticeField, StackedDesign
         self.kind = 'global'
         parts = []
         if kinematics is not None:

@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 
 import cv2
 
-from armcal_ros.core.camera import skew
+from armcal_ros.core.geometry import skew
 
 MOUNT_NAMES = ('target/tx', 'target/ty', 'target/tz', 'target/rx', 'target/ry', 'target/rz')
 
@@ -52,6 +52,13 @@ def pose_matrix(translation, quat_xyzw):
     T[:3, :3] = Rotation.from_quat(q / n).as_matrix()
     T[:3, 3] = t
     return T
+
+
+def pose_vector(T):
+    """Return [x, y, z, qx, qy, qz, qw] (floats) of a 4x4 pose: the inverse of pose_matrix."""
+    T = np.asarray(T, float)
+    return [float(x) for x in T[:3, 3]] + \
+        [float(x) for x in Rotation.from_matrix(T[:3, :3]).as_quat()]
 
 
 def invert(T):

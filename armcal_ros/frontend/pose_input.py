@@ -7,24 +7,16 @@ between the bracketing pose messages - the translation linearly, the rotation by
 linear interpolation - and refused when the stamp is outside the history or the bracketing gap is
 longer than ``max_gap_s``.
 
-Two containers:
-
-- :class:`PoseHistory`, the live one: a bounded, time-ordered history with the interface of
-  :class:`~armcal_ros.frontend.pairing.JointHistory`, so that
-  :class:`~armcal_ros.frontend.pairing.FramePairer` pairs frames with poses exactly as with joint
-  states (same pending, batching, time-jump and stillness rules).  Its "configuration" is the
-  pose vector c = (x, y, z, qx, qy, qz, qw); :func:`pose_points` maps it to the target's
-  reference points and :func:`mean_pose_vector` pools a dwell.
-- :class:`PoseTrack`, for a whole recording read at once (unbounded, any insertion order); its
-  stillness is the speed of a point at ``radius`` from the link origin, |v| + |omega| radius,
-  from the bracketing messages.
+:class:`PoseHistory` is a bounded, time-ordered history with the interface of
+:class:`~armcal_ros.frontend.pairing.JointHistory`, so that
+:class:`~armcal_ros.frontend.pairing.FramePairer` pairs frames with poses exactly as with joint
+states (same pending, batching, time-jump and stillness rules), live or from a recording.  Its
+"configuration" is the pose vector c = (x, y, z, qx, qy, qz, qw); :func:`pose_points` maps it to
+the target's reference points and :func:`mean_pose_vector` pools a dwell.
 """
 
-import bisect
-from dataclasses import dataclass
-
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
 from armcal_ros.frontend.pairing import JointStatus, PairStatus, StampedRing
 
@@ -133,56 +125,3 @@ class PoseHistory(StampedRing):
         """Interpolate at several stamps: (statuses (M,) PairStatus, pose vectors (M, 7))."""
         rows = self.rows
         return _interpolate(self.stamps, rows[:, :3], rows[:, 3:], stamps_ns, self.max_gap_ns)
-
-
-@dataclass
-class PoseAt:
-    """An interpolated pose (4, 4), the point speed there (m/s), and a status string."""
-
-    pose: np.ndarray
-    speed: float
-    status: str
-
-
-class PoseTrack:
-    """A time-ordered history of link poses (a whole recording); :meth:`at` interpolates."""
-
-    def __init__(self, max_gap_s=0.1):
-        if not max_gap_s > 0:
-            raise ValueError(f'max_gap_s must be > 0, got {max_gap_s}')
-        self.max_gap_ns = int(max_gap_s * 1e9)
-        self._t = []
-        self._p = []
-        self._q = []
-
-    def __len__(self):
-        return len(self._t)
-
-    def add(self, stamp_ns, translation, quat_xyzw):
-        """Add one pose; non-finite or non-unit quaternions are refused with ValueError."""
-        t, q = _check_pose(translation, quat_xyzw)
-        k = bisect.bisect_right(self._t, int(stamp_ns))
-        self._t.insert(k, int(stamp_ns))
-        self._p.insert(k, t)
-        self._q.insert(k, q)
-
-    def at(self, stamp_ns, radius=0.0) -> PoseAt:
-        """Return the pose at ``stamp_ns`` ('ok', 'outside' or 'gap' in ``status``)."""
-        t = np.asarray(self._t, np.int64)
-        if len(t) < 2 or stamp_ns < t[0] or stamp_ns > t[-1]:
-            return PoseAt(None, float('nan'), 'outside')
-        k = int(np.searchsorted(t, stamp_ns, side='right'))
-        k = min(max(k, 1), len(t) - 1)
-        t0, t1 = t[k - 1], t[k]
-        if t1 - t0 > self.max_gap_ns or t1 == t0:
-            return PoseAt(None, float('nan'), 'gap')
-        a = (stamp_ns - t0) / (t1 - t0)
-        rots = Rotation.from_quat([self._q[k - 1], self._q[k]])
-        R = Slerp([0.0, 1.0], rots)([a])[0]
-        T = np.eye(4)
-        T[:3, :3] = R.as_matrix()
-        T[:3, 3] = (1 - a) * self._p[k - 1] + a * self._p[k]
-        dt = (t1 - t0) * 1e-9
-        v = np.linalg.norm(self._p[k] - self._p[k - 1]) / dt
-        w = (rots[0].inv() * rots[1]).magnitude() / dt
-        return PoseAt(T, float(v + w * radius), 'ok')

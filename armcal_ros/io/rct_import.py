@@ -23,7 +23,8 @@ from typing import Dict, List, Optional
 import numpy as np
 import yaml
 
-from armcal_ros.core.target import pose_matrix
+from armcal_ros.core.board_calibration import BoardData
+from armcal_ros.core.target import pose_matrix, pose_vector
 
 CAL_DATA = 'cal_data.yaml'
 TARGET = 'target.yaml'
@@ -65,13 +66,23 @@ def read_pose(doc, where):
 
 @dataclass
 class RctTarget:
-    """The ChArUco board of ``target.yaml`` (sizes in metres, OpenCV dictionary code)."""
+    """
+    The ChArUco board of ``target.yaml`` (sizes in metres, OpenCV dictionary code).
+
+    robot_cal_tools' boards and mount guesses use the pre-4.6 OpenCV corner numbering and frame
+    (``CharucoBoard(*target.board_args, legacy=True)``).
+    """
 
     rows: int
     cols: int
     square_size: float
     marker_size: float
     dictionary: int
+
+    @property
+    def board_args(self):
+        """Return (rows, cols, square_size, marker_size, dictionary) for a CharucoBoard."""
+        return (self.rows, self.cols, self.square_size, self.marker_size, self.dictionary)
 
 
 @dataclass
@@ -155,7 +166,7 @@ def detect_views(data: RctDataSet, detector):
     """
     Detect the board in every image; return (uv list, ids list, (width, height)).
 
-    ``detector`` is a :class:`~armcal_ros.frontend.charuco.CharucoDetector`; an image without
+    ``detector`` is a :class:`~armcal_ros.frontend.detectors.CharucoDetector`; an image without
     a usable detection gives empty arrays.
     """
     import cv2
@@ -173,14 +184,6 @@ def detect_views(data: RctDataSet, detector):
         uvs.append(uv)
         ids.append(i)
     return uvs, ids, size
-
-
-def pose_vector(T):
-    """Return [x, y, z, qx, qy, qz, qw] of a 4x4 pose."""
-    from scipy.spatial.transform import Rotation
-    T = np.asarray(T, float)
-    return [float(x) for x in T[:3, 3]] + \
-        [float(x) for x in Rotation.from_matrix(T[:3, :3]).as_quat()]
 
 
 def save_views(path, data: RctDataSet, uvs, ids, size, extra=None, decimals=2):
@@ -241,21 +244,8 @@ def load_views(path):
     return data, uvs, ids, size, doc
 
 
-def charuco_board(target: RctTarget, legacy=True):
-    """
-    Return the :class:`~armcal_ros.frontend.charuco.CharucoBoard` of ``target.yaml``.
-
-    robot_cal_tools' boards and mount guesses use the pre-4.6 OpenCV corner numbering and
-    frame, hence ``legacy`` True by default.
-    """
-    from armcal_ros.frontend.charuco import CharucoBoard
-    return CharucoBoard(target.rows, target.cols, target.square_size, target.marker_size,
-                        target.dictionary, legacy=legacy)
-
-
 def board_data(poses, board_points, uvs, ids, camera=0):
     """Return :class:`~armcal_ros.core.board_calibration.BoardData` for one camera's views."""
-    from armcal_ros.core.board_calibration import BoardData
     view = np.concatenate([np.full(len(i), v, np.int64) for v, i in enumerate(ids)] +
                           [np.zeros(0, np.int64)])
     uv = np.concatenate([np.asarray(u, float).reshape(-1, 2) for u in uvs] + [np.zeros((0, 2))])

@@ -1,7 +1,8 @@
 """
 Between the package's dataclasses and ROS 2 messages: CameraInfo, poses, TF, diagnostics, markers.
 
-Conventions (DESIGN.md sections 3 and 5, PEERS.md):
+Conventions (those of camera drivers and image_geometry, so that every CameraInfo consumer
+reads the output as a driver's):
 
 - CameraInfo of a monocular camera: ``distortion_model`` ``plumb_bob`` with
   D = (k1, k2, p1, p2, k3) as OpenCV orders them, K row-major, R = identity, P = [K | 0];

@@ -1,5 +1,5 @@
 """
-The ``armcal`` node: background camera calibration on live topics (DESIGN.md section 5).
+The ``armcal`` node: background camera calibration on live topics.
 
 Threads and why:
 
@@ -16,7 +16,7 @@ Threads and why:
 So a slow decode or a long solve never delays a callback, and a burst the worker cannot keep up
 with costs the oldest images (counted in diagnostics), never the joint states they need.
 
-Interface (node ``armcal``; DESIGN.md section 5): subscribes to ``joint_states_topic`` (or,
+Interface (node ``armcal``; README, "The ROS 2 node"): subscribes to ``joint_states_topic`` (or,
 with pose input, ``pose_topic`` carrying ``pose_type``) and ``image_topics`` (best effort);
 publishes ``~/<camera>/camera_info`` and ``~/<camera>/pose``
 (reliable, transient local), ``~/markers`` (RViz), ``/diagnostics`` (1 Hz) and ``~/samples``
@@ -31,7 +31,6 @@ model, its hyperparameters, the solver's settings and the schedule may change wh
 take effect at the next solve.
 """
 
-import dataclasses
 import os
 import signal
 import sys
@@ -57,14 +56,14 @@ from sensor_msgs.srv import SetCameraInfo
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from armcal_ros.offline import build_collector, build_engine, CalibrateError, stamp_ns
-from armcal_ros.params import (BY_NAME, check_all, check_value, default_output_dir, NODE_NAME,
-                               PARAMS, prior_settings, solver_settings)
-from armcal_ros.pipeline import pose_from_msg
+from armcal_ros.compose import build_pipeline, engine_settings
+from armcal_ros.io.message_fields import pose_from_msg, stamp_ns
+from armcal_ros.params import BY_NAME, check_value, NODE_NAME, PARAMS
 from armcal_ros.ros import conversions as conv
 from armcal_ros.ros.event_queue import EventQueue
 from armcal_ros.ros.raw_message import LazyMessage
 from armcal_ros.ros.status import diagnostic_statuses, NodeState
+from armcal_ros.settings import settings_from_values
 
 #: Parameters that may change while the node runs (they apply from the next solve).
 RUNTIME_PARAMETERS = frozenset([
@@ -158,14 +157,15 @@ class CalibratorNode(Node):
         self._solve_lock = threading.Lock()
         self.values = self._declare_and_check(argv)
         v = self.values
-        self.camera_names = list(v['camera_names'])
-        self.base_frame = v['base_frame']
-        self.output_dir = v['output_dir'] or default_output_dir()
+        self.settings = settings_from_values(v)
+        self.camera_names = list(self.settings.inputs.camera_names)
+        self.base_frame = self.settings.robot.base_frame
+        self.output_dir = self.settings.outputs.output_dir
         try:
-            self.chain, self.collector = build_collector(v, log=self._log_input)
-        except (CalibrateError, ValueError) as exc:
+            pipe = build_pipeline(self.settings, log=self._log_input)
+        except ValueError as exc:
             raise ParameterError(str(exc)) from exc
-        self.engine = build_engine(v, self.chain)
+        self.chain, self.collector, self.engine = pipe.chain, pipe.collector, pipe.engine
         self.engine.on_result(self._on_solve)
         self.queue = EventQueue(QUEUE_BOUNDS)
         self._counts = {}
@@ -195,7 +195,8 @@ class CalibratorNode(Node):
         self.create_service(Trigger, '~/reset', self._srv_reset)
         self.create_service(Trigger, '~/save', self._srv_save)
 
-        # Best effort so that reliable and best-effort publishers both match (PEERS.md item 4).
+        # Best effort so that reliable and best-effort publishers both match (a reliable
+        # subscription never connects to a best-effort publisher: no message, one warning).
         # Deep histories (2 s of images at 15 Hz, 5 s of joint states at 200 Hz) ride out a
         # process that is not scheduled for a while; best effort drops what overflows them.
         def sensor_qos(depth):
@@ -251,9 +252,12 @@ class CalibratorNode(Node):
                 errors.append(f'parameter {p.name}: {exc}')
                 continue
             if value is None:
-                # Initialise it (so that `ros2 param get` works); runtime checks are not
-                # registered yet.
-                value = list(p.default)
+                # rcl reads an empty list in a parameter file (`free_distortion: []`) as a
+                # parameter without a type, and rclpy then returns None: the user asked for an
+                # empty list, which is not the default.  A list parameter declared by type
+                # without an override is None as well, and its default is empty.  Initialise it
+                # (so that `ros2 param get` works); runtime checks are not registered yet.
+                value = []
                 self.set_parameters([Parameter(p.name, _PTYPES[p.type], value)])
             try:
                 values[p.name] = check_value(p.name, value)
@@ -264,7 +268,7 @@ class CalibratorNode(Node):
                          and k not in _FOREIGN_PARAMETERS and not k.startswith('qos_overrides.'))
         if unknown:
             errors.append(f'unknown parameter(s) {unknown} (misspelt? see the parameter table '
-                          f'in DESIGN.md section 5 or `ros2 param describe`)')
+                          f'in the README or `ros2 param describe`)')
         if errors:
             raise ParameterError('; '.join(errors))
         rel = values['robot_description_file']
@@ -274,9 +278,7 @@ class CalibratorNode(Node):
                     values['robot_description_file'] = os.path.normpath(os.path.join(d, rel))
                     break
         try:
-            check_all(values)
-            prior_settings(values)
-            solver_settings(values)
+            settings_from_values(values)
         except ValueError as exc:
             raise ParameterError(str(exc)) from exc
         return values
@@ -298,17 +300,14 @@ class CalibratorNode(Node):
             except ValueError as exc:
                 return SetParametersResult(successful=False, reason=str(exc))
         try:
-            check_all(new)
             self._engine_settings(new)
         except ValueError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
 
     def _engine_settings(self, values):
-        return dataclasses.replace(
-            self.engine.settings, prior=prior_settings(values), solver=solver_settings(values),
-            min_samples=values['min_samples'], solve_period_s=values['solve_period'],
-            min_new_samples=values['min_new_samples']).validate()
+        """Return the engine's settings under new parameter values (same target, cameras)."""
+        return engine_settings(settings_from_values(values), self.engine.settings.board)
 
     def _apply_runtime_parameters(self, params):
         changed = [p for p in params if p.name in BY_NAME]
@@ -661,8 +660,8 @@ def main(args=None):
     Entry point of ``calibrator_node``; returns the exit status (2 for refused parameters).
 
     SIGINT and SIGTERM end the spin in the main thread while the context is still valid, so
-    that the node can stop its threads, save and log before rclpy shuts down (DESIGN.md
-    section 8: threads are joined before ``rclpy.shutdown()``).
+    that the node can stop its threads, save and log before rclpy shuts down (a thread still
+    spinning at ``rclpy.shutdown()`` aborts the process, so threads are joined first).
     """
     argv = sys.argv if args is None else args
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)

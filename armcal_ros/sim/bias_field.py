@@ -15,7 +15,7 @@ Two ways to draw b(X) ~ GP(0, s_b^2 k(|X - X'|; L) I_3):
 
 import numpy as np
 
-from armcal_ros.core.priors import kernel_matrix
+from armcal_ros.core.kernels import kernel_matrix
 
 
 def draw_bias_at(points, bias_sigma, coherence_length, rng, kernel='squared_exponential',

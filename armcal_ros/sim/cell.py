@@ -39,6 +39,7 @@ from typing import List, Optional
 
 import numpy as np
 
+from armcal_ros.robot.kinematics import KinematicChain
 from armcal_ros.sim.bias_field import FourierBiasField
 from armcal_ros.sim.cameras import ring_of_cameras
 from armcal_ros.sim.render import (clutter_scene, expose, glint_patches, marker_signal,
@@ -326,12 +327,22 @@ def link_occluded(chain, q, marker, camera_centre, link_radius, clearance):
     return hidden
 
 
-def _build_robot(chain, scenario, rng, s: SimSettings, q_sample):
-    geometric, nongeometric, field_spec = SCENARIOS[scenario]
+def build_true_robot(chain, scenario, rng, s: SimSettings, q_sample, field_spec=None):
+    """
+    Return the true robot of ``scenario`` (:data:`SCENARIOS`, magnitudes from ``s``).
+
+    Every error source is drawn, in the same order, whatever the scenario, so scenarios with
+    the same seed share their draws; the scenario says which are used.  ``field_spec``
+    overrides the scenario's bias field as (sigma m, coherence length m).
+    """
+    if scenario not in SCENARIOS:
+        raise ValueError(f'scenario must be one of {sorted(SCENARIOS)}, got {scenario!r}')
+    geometric, nongeometric, scenario_field = SCENARIOS[scenario]
+    if field_spec is None:
+        field_spec = scenario_field
     n = chain.n_joints
     errors = np.zeros(chain.n_errors)
     amp, phase, compliance = np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n)
-    # always draw everything in the same order so scenarios with the same seed share draws
     e = draw_geometric_errors(chain, rng, s.offset_deg, s.translation_mm, s.rotation_deg,
                               s.tip_translation_mm, s.error_model)
     a, p = draw_periodic(chain, rng, s.periodic_deg)
@@ -348,8 +359,8 @@ def _build_robot(chain, scenario, rng, s: SimSettings, q_sample):
                      compliance, bias)
 
 
-def _load_chain(s: SimSettings):
-    from armcal_ros.robot.kinematics import KinematicChain
+def load_chain(s: SimSettings):
+    """Return the :class:`KinematicChain` of ``s``'s URDF (the bundled PUMA 560 by default)."""
     path = s.urdf_path or default_urdf_path()
     with open(path, encoding='utf-8') as f:
         return KinematicChain.from_urdf(f.read(), base_frame=s.base_frame,
@@ -397,7 +408,7 @@ def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, ch
         s = SimSettings(**{**s.__dict__, 'duration': float(duration)})
     seed = int(seed)
     rng = np.random.default_rng(seed)
-    chain = chain or _load_chain(s)
+    chain = chain or load_chain(s)
     n = chain.n_joints
     lo, hi = joint_ranges(chain, s)
     hop = np.radians(np.resize(np.asarray(s.hop_sigma_deg, float), n))
@@ -441,7 +452,7 @@ def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, ch
         return uniform_valid(rng)
 
     q_sample = rng.uniform(lo, hi, (500, n))
-    robot = _build_robot(chain, scenario, rng, s, q_sample)
+    robot = build_true_robot(chain, scenario, rng, s, q_sample)
     speed = np.where(np.isfinite(chain.velocity_limits), chain.velocity_limits, 2.0)
     traj = teleop_trajectory(sample_target, uniform_valid(rng), s.duration, rng,
                              speed * s.speed_fraction, dwell=s.dwell,

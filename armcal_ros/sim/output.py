@@ -11,7 +11,8 @@ nominal model at the joint readings (so it carries the same bias as the joint st
 Ground truth goes to ``<bag>/ground_truth/`` (inside the bag directory, beside the storage
 file, so it travels with the bag; rosbag2 readers ignore it):
 
-- ``<cam>.yaml`` and ``extrinsics.yaml``: the true cameras (formats of DESIGN.md section 5);
+- ``<cam>.yaml`` and ``extrinsics.yaml``: the true cameras (the calibrator's output formats,
+  :mod:`armcal_ros.io.calib_files`);
 - ``markers.npz``: per dwell ``dwell_start_ns``, ``dwell_end_ns``, ``dwell_stamp_ns`` (middle),
   ``dwell_q`` (D, n) in ``joint_names`` order, ``dwell_true`` and ``dwell_nominal`` (D, 3) marker
   positions in the base frame (m); per frame ``frame_camera`` (index into ``camera_names``),

@@ -19,12 +19,10 @@ import numpy as np
 
 from armcal_ros.core.adjustment import Observations
 from armcal_ros.core.kinematic_prior import KinematicData
-from armcal_ros.sim.bias_field import FourierBiasField
-from armcal_ros.sim.cell import (_load_chain, joint_ranges, link_occluded, place_cameras,
-                                 SCENARIOS, SimSettings)
+from armcal_ros.sim.cell import (build_true_robot, joint_ranges, link_occluded, load_chain,
+                                 place_cameras, SimSettings)
 from armcal_ros.sim.synthetic import SyntheticProblem
-from armcal_ros.sim.true_robot import (draw_compliance, draw_geometric_errors, draw_periodic,
-                                       TrueRobot)
+from armcal_ros.sim.true_robot import TrueRobot
 
 
 @dataclass
@@ -38,32 +36,6 @@ class RobotProblem(SyntheticProblem):
     test_q: Optional[np.ndarray] = None
 
 
-def build_true_robot(chain, scenario, rng, s: SimSettings, q_sample, field=None):
-    """
-    Return the true robot of ``scenario`` (draws in the cell simulator's order and magnitudes).
-
-    ``field`` overrides the scenario's bias field as (sigma m, coherence length m) or None.
-    """
-    if scenario not in SCENARIOS:
-        raise ValueError(f'scenario must be one of {sorted(SCENARIOS)}, got {scenario!r}')
-    geometric, nongeometric, field_spec = SCENARIOS[scenario]
-    if field is not None:
-        field_spec = field
-    n = chain.n_joints
-    e = draw_geometric_errors(chain, rng, s.offset_deg, s.translation_mm, s.rotation_deg,
-                              s.tip_translation_mm, s.error_model)
-    a, p = draw_periodic(chain, rng, s.periodic_deg)
-    c = draw_compliance(chain, rng, q_sample, s.compliance_deg)
-    field_rng = np.random.default_rng(rng.integers(2 ** 63))
-    errors = e if geometric else np.zeros(chain.n_errors)
-    if nongeometric:
-        amp, phase, comp = a, p, c
-    else:
-        amp, phase, comp = np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(n)
-    bias = FourierBiasField(field_spec[0], field_spec[1], field_rng) if field_spec else None
-    return TrueRobot(chain, np.asarray(s.marker_offset, float), errors, amp, phase, comp, bias)
-
-
 def make_robot_problem(scenario='geometric', n_points=300, seed=0, n_test=500,
                        pixel_sigma=0.3, settings: SimSettings = None, chain=None,
                        occlusion=True, field=None) -> RobotProblem:
@@ -75,7 +47,7 @@ def make_robot_problem(scenario='geometric', n_points=300, seed=0, n_test=500,
     """
     s = settings or SimSettings()
     rng = np.random.default_rng(seed)
-    chain = chain or _load_chain(s)
+    chain = chain or load_chain(s)
     n = chain.n_joints
     lo, hi = joint_ranges(chain, s)
     wmin, wmax = np.asarray(s.workspace_min, float), np.asarray(s.workspace_max, float)

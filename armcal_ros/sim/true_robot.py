@@ -18,13 +18,14 @@ Calibration", 1991; Corke and Armstrong-Helouvry's PUMA 560 survey):
   0.3 mm per axis (machining and assembly tolerances of link lengths and offsets), origin
   rotations of 0.03 deg per axis (twist and parallelism errors of the joint axes); and the
   marker mount (the tip block) 0.2 mm per axis, as a turned adapter on the flange would be.
-  That is error model ``joint-origin`` (the default, :data:`ERROR_MODELS`).  Model ``dh`` is
-  the prototype's of DESIGN.md section 3 (Denavit-Hartenberg errors: per joint an angle offset,
-  link-length errors of a and d, and a twist error of alpha): for a URDF written from standard
-  DH, where joint i+1's origin in link i is Tz(d_i) Tx(a_i) Rx(alpha_i) (the bundled PUMA 560),
-  these are the origin's x and z translations and its x rotation; the first joint's origin is
-  the base frame itself (DH frame 0) and carries no error.  Its draws are those of
-  ``joint-origin`` with the other components set to zero, so a seed gives the same cell.
+  That is error model ``joint-origin`` (the default, :data:`ERROR_MODELS`).  Model ``dh`` has
+  Denavit-Hartenberg errors instead (per joint an angle offset, link-length errors of a and d,
+  and a twist error of alpha; ``--error-model dh`` of the accuracy benchmark): for a URDF
+  written from standard DH, where joint i+1's origin in link i is Tz(d_i) Tx(a_i) Rx(alpha_i)
+  (the bundled PUMA 560), these are the origin's x and z translations and its x rotation; the
+  first joint's origin is the base frame itself (DH frame 0) and carries no error.  Its draws
+  are those of ``joint-origin`` with the other components set to zero, so a seed gives the
+  same cell.
 - periodic joint-angle errors: per joint a sum of a one-cycle-per-revolution term (gear or
   encoder eccentricity) and a two-cycles term (encoder ellipticity, harmonic-drive
   kinematic error), dq = A1 sin(q + phi1) + A2 sin(2 q + phi2), amplitudes uniform in

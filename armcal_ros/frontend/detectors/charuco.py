@@ -28,8 +28,8 @@ import numpy as np
 
 import cv2
 
-from armcal_ros.frontend.detectors import (_aruco_dictionary, _white_level, Detection,
-                                           Detector, to_gray)
+from armcal_ros.frontend.detectors.base import (aruco_dictionary, Detection, Detector, to_gray,
+                                                white_level)
 
 
 def _dictionary_name(dictionary):
@@ -72,7 +72,7 @@ class CharucoBoard:
         if not (np.isfinite(self.marker_size) and 0 < self.marker_size < self.square_size):
             raise ValueError(f'charuco marker_size must be in (0, square_size={self.square_size})'
                              f' (metres), got {self.marker_size}')
-        d = _aruco_dictionary(self.dictionary)
+        d = aruco_dictionary(self.dictionary)
         if d.bytesList.shape[0] < self.n_markers:
             raise ValueError(f'dictionary {self.dictionary} has {d.bytesList.shape[0]} markers, '
                              f'a {self.rows}x{self.cols} board needs {self.n_markers}')
@@ -94,7 +94,7 @@ class CharucoBoard:
         ``board_markers_only`` gives it a dictionary cut to the board's own markers (ids
         0 .. n_markers - 1, the same codes): see :class:`CharucoDetector`.
         """
-        d = _aruco_dictionary(self.dictionary)
+        d = aruco_dictionary(self.dictionary)
         if board_markers_only:
             d = cv2.aruco.Dictionary(np.ascontiguousarray(d.bytesList[:self.n_markers]),
                                      d.markerSize, d.maxCorrectionBits)
@@ -168,7 +168,7 @@ class CharucoDetector(Detector):
         """Return (uv (K, 2), ids (K,)) sorted by id; K = 0 when nothing is usable."""
         gray = to_gray(image)
         if gray.dtype != np.uint8:
-            gray = cv2.convertScaleAbs(gray, alpha=255.0 / _white_level(gray.dtype))
+            gray = cv2.convertScaleAbs(gray, alpha=255.0 / white_level(gray.dtype))
         corners, ids, _, marker_ids = self._detector.detectBoard(np.ascontiguousarray(gray))
         if ids is None or len(ids) < self.min_corners:
             self.last_status = 'none' if marker_ids is None else 'too_few_corners'

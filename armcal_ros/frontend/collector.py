@@ -1,5 +1,5 @@
 """
-From joint states or link poses, and images, to samples: the front end the node and the CLI share.
+From joint states or link poses, and images, to samples: the front end every caller shares.
 
 :class:`SampleCollector` takes plain inputs - a joint state as (stamp, names, positions), or with
 pose input a measured link pose as (stamp, translation, quaternion), and an image as (camera,
@@ -23,62 +23,12 @@ from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
-from armcal_ros.core.target import optional_pose
-from armcal_ros.frontend.charuco import CharucoBoard, CharucoDetector
-from armcal_ros.frontend.detectors import make_detector
 from armcal_ros.frontend.image_decode import decode_image_msg, ImageDecodeError
 from armcal_ros.frontend.pairing import (DwellPooler, FramePairer, JointStatus, PairStatus)
 from armcal_ros.frontend.pose_input import (mean_pose_vector, pose_points, pose_vector_matrix,
                                             PoseHistory)
 from armcal_ros.frontend.samples import BoardTarget
-from armcal_ros.params import charuco_settings
 from armcal_ros.robot.kinematics import KinematicChain
-
-
-def make_board(values) -> CharucoBoard:
-    """Return the ChArUco board of the ``charuco_*`` parameters (ValueError names unset ones)."""
-    return CharucoBoard(**charuco_settings(values))
-
-
-def board_target(values, board: CharucoBoard) -> BoardTarget:
-    """Return the board target: its corners, ``target_pose_guess`` and the estimation flag."""
-    return BoardTarget(board.points(), optional_pose(values['target_pose_guess'] or None),
-                       values['estimate_marker_offset'])
-
-
-def make_detectors(values, camera_names, board: Optional[CharucoBoard] = None):
-    """One detector per camera (each tracks its own marker position) from parameter values."""
-    out = {}
-    if values['marker_type'] == 'charuco':
-        board = board or make_board(values)
-    for name in camera_names:
-        if values['marker_type'] == 'charuco':
-            out[name] = CharucoDetector(board)
-        elif values['marker_type'] == 'sphere':
-            out[name] = make_detector('sphere', min_radius_px=values['sphere_min_radius_px'],
-                                      max_radius_px=values['sphere_max_radius_px'],
-                                      static_scene=values['sphere_static_scene'])
-        else:
-            mid = values['aruco_id']
-            out[name] = make_detector('aruco', dictionary=values['aruco_dictionary'],
-                                      marker_id=None if mid < 0 else mid)
-    return out
-
-
-def pose_from_msg(msg):
-    """
-    Return (translation (3,), quaternion xyzw (4,)) of a PoseStamped or TransformStamped.
-
-    Duck-typed on the message's fields, so rosbags' dataclasses and rclpy's messages both work.
-    """
-    if hasattr(msg, 'pose'):
-        p, o = msg.pose.position, msg.pose.orientation
-    elif hasattr(msg, 'transform'):
-        p, o = msg.transform.translation, msg.transform.rotation
-    else:
-        raise ValueError(f'{type(msg).__name__} is neither a PoseStamped nor a '
-                         'TransformStamped')
-    return (p.x, p.y, p.z), (o.x, o.y, o.z, o.w)
 
 
 class RateLimitedLog:

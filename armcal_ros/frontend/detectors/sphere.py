@@ -1,73 +1,18 @@
 """
-Marker detectors: an image in, zero or more 2D points with ids and a quality out.
+The sphere detector: a bright ball or LED, one round blob brighter than its surroundings.
 
-All image coordinates use the OpenCV / ``cv2.projectPoints`` convention: the centre of the
-top-left pixel is (0, 0), u to the right, v down.
-
-A detector instance may keep state between frames (the sphere detector tracks its last
-position), so the caller keeps one instance per camera.
+The class docstring has the steps, the ambiguity policy and the static-scene model.
 """
 
 from dataclasses import dataclass
-import inspect
 import math
 
 import numpy as np
 
 import cv2
 
-
-@dataclass(frozen=True)
-class Detection:
-    """
-    One detected point.
-
-    ``uv`` (2,) pixel position, ``id`` marker id (0 for a sphere, the tag id for ArUco),
-    ``quality`` in [0, 1] (detector specific, higher is better; see each detector), and
-    ``radius_px`` the apparent size (sphere radius, half the tag diagonal).
-    """
-
-    uv: np.ndarray
-    id: int
-    quality: float
-    radius_px: float
-
-
-class Detector:
-    """Interface of every detector: ``detect(image) -> list[Detection]``."""
-
-    #: why the last call to :meth:`detect` returned what it did (for diagnostics and counters)
-    last_status = 'none'
-
-    def detect(self, image):
-        """Return the detections in ``image`` ((H, W) mono or (H, W, 3) BGR, 8 or 16 bit)."""
-        raise NotImplementedError
-
-    def reset(self):
-        """Forget any state carried between frames (e.g. after a time jump)."""
-
-
-def to_gray(image):
-    """Return a single-channel view/copy of ``image`` ((H, W), (H, W, 3) BGR or (H, W, 4) BGRA)."""
-    image = np.asarray(image)
-    if image.ndim == 2:
-        return image
-    if image.ndim == 3 and image.shape[2] == 1:
-        return image[:, :, 0]
-    if image.ndim == 3 and image.shape[2] in (3, 4):
-        code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
-        return cv2.cvtColor(np.ascontiguousarray(image), code)
-    raise ValueError(f'image must have shape (H, W), (H, W, 3) or (H, W, 4), got {image.shape}')
-
-
-def _white_level(dtype):
-    if dtype == np.uint8:
-        return 255.0
-    if dtype == np.uint16:
-        return 65535.0
-    if np.issubdtype(dtype, np.floating):
-        return 1.0
-    raise ValueError(f'image dtype must be uint8, uint16 or float, got {dtype}')
+from armcal_ros.frontend.detectors.base import (check_fraction, check_positive, Detection,
+                                                Detector, to_gray, white_level)
 
 
 def _median(values):
@@ -75,24 +20,6 @@ def _median(values):
     flat = values.reshape(-1)
     k = flat.size // 2
     return float(np.partition(flat, k)[k])
-
-
-def _check_positive(name, value, allow_zero=False):
-    try:
-        value = float(value)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f'{name} must be a number, got {value!r}') from exc
-    if not math.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
-        raise ValueError(f'{name} must be {"non-negative" if allow_zero else "positive"}, '
-                         f'got {value}')
-    return value
-
-
-def _check_fraction(name, value):
-    value = _check_positive(name, value, allow_zero=True)
-    if value > 1:
-        raise ValueError(f'{name} must be in [0, 1], got {value}')
-    return value
 
 
 @dataclass
@@ -180,23 +107,23 @@ class SphereDetector(Detector):
                  min_contrast=0.03, min_roundness=0.7, ambiguity_ratio=0.5,
                  search_window_px=48.0, track_radius_px=3.0, white_level=None,
                  max_candidates=32, static_scene=True):
-        self.min_radius_px = _check_positive('min_radius_px', min_radius_px)
-        self.max_radius_px = _check_positive('max_radius_px', max_radius_px)
+        self.min_radius_px = check_positive('min_radius_px', min_radius_px)
+        self.max_radius_px = check_positive('max_radius_px', max_radius_px)
         if self.max_radius_px <= self.min_radius_px:
             raise ValueError(f'max_radius_px ({max_radius_px}) must exceed min_radius_px '
                              f'({min_radius_px})')
-        self.blur_sigma_px = _check_positive('blur_sigma_px', blur_sigma_px)
+        self.blur_sigma_px = check_positive('blur_sigma_px', blur_sigma_px)
         if self.blur_sigma_px < 0.5:
             raise ValueError(f'blur_sigma_px must be >= 0.5, got {blur_sigma_px}')
-        self.k_sigma = _check_positive('k_sigma', k_sigma)
-        self.min_contrast = _check_fraction('min_contrast', min_contrast)
-        self.min_roundness = _check_fraction('min_roundness', min_roundness)
-        self.ambiguity_ratio = _check_fraction('ambiguity_ratio', ambiguity_ratio)
-        self.search_window_px = _check_positive('search_window_px', search_window_px,
-                                                allow_zero=True)
-        self.track_radius_px = _check_positive('track_radius_px', track_radius_px)
-        self.white_level = None if white_level is None else _check_positive('white_level',
-                                                                            white_level)
+        self.k_sigma = check_positive('k_sigma', k_sigma)
+        self.min_contrast = check_fraction('min_contrast', min_contrast)
+        self.min_roundness = check_fraction('min_roundness', min_roundness)
+        self.ambiguity_ratio = check_fraction('ambiguity_ratio', ambiguity_ratio)
+        self.search_window_px = check_positive('search_window_px', search_window_px,
+                                               allow_zero=True)
+        self.track_radius_px = check_positive('track_radius_px', track_radius_px)
+        self.white_level = None if white_level is None else check_positive('white_level',
+                                                                           white_level)
         if int(max_candidates) != max_candidates or max_candidates < 2:
             raise ValueError(f'max_candidates must be an integer >= 2, got {max_candidates!r}')
         self.max_candidates = int(max_candidates)
@@ -266,7 +193,7 @@ class SphereDetector(Detector):
         return dets
 
     def _detect(self, gray):
-        white = self.white_level or _white_level(gray.dtype)
+        white = self.white_level or white_level(gray.dtype)
         h, w = gray.shape
         if self.last_uv is not None and self.search_window_px > 0:
             # The window must hold the ball with its blur margin and the ring around it.
@@ -449,161 +376,3 @@ def _median_of_five(frames):
     for i, j in ((0, 1), (3, 4), (2, 4), (2, 3), (0, 3), (0, 2), (1, 4), (1, 3), (1, 2)):
         v[i], v[j] = cv2.min(v[i], v[j]), cv2.max(v[i], v[j])
     return v[2]
-
-
-_ARUCO_PREFIX = 'DICT_'
-
-
-def _aruco_dictionary(name):
-    key = str(name).strip().upper()
-    if not key.startswith(_ARUCO_PREFIX):
-        key = _ARUCO_PREFIX + key
-    value = getattr(cv2.aruco, key, None)
-    if not isinstance(value, int):
-        known = sorted(k for k in dir(cv2.aruco) if k.startswith(_ARUCO_PREFIX))
-        raise ValueError(f'dictionary {name!r} is not an OpenCV ArUco dictionary '
-                         f'(one of {", ".join(known)})')
-    return cv2.aruco.getPredefinedDictionary(value)
-
-
-def diagonal_intersection(corners):
-    """
-    Return the intersection (2,) of the diagonals 0-2 and 1-3 of a quadrilateral (4, 2).
-
-    Under perspective the image of a square's centre is where its diagonals cross, not the
-    mean of its corners (perspective does not preserve ratios of lengths, the corner mean is
-    off by up to a pixel on a tilted tag; it does preserve incidence).
-    """
-    c = np.asarray(corners, dtype=float).reshape(4, 2)
-    d1, d2 = c[2] - c[0], c[3] - c[1]
-    a = np.column_stack([d1, -d2])
-    if abs(np.linalg.det(a)) < 1e-9 * max(1.0, float(np.dot(d1, d1) + np.dot(d2, d2))):
-        return None
-    s, _ = np.linalg.solve(a, c[1] - c[0])
-    return c[0] + s * d1
-
-
-class ArucoDetector(Detector):
-    """
-    An ArUco / AprilTag tag's centre, by ``cv2.aruco.ArucoDetector`` with sub-pixel corners.
-
-    The point is the intersection of the refined corners' diagonals (see
-    :func:`diagonal_intersection`).  ``marker_id`` None returns every tag of the dictionary,
-    otherwise only that id.  ``minMarkerDistanceRate`` is 0 because the default missed
-    strongly tilted tags under noise (DESIGN section 8).  ``quality`` is the shortest side in
-    pixels over 32, capped at 1 (corner accuracy degrades on small tags).
-    """
-
-    def __init__(self, dictionary='DICT_4X4_50', marker_id=None, corner_refine_win_size=5,
-                 min_marker_distance_rate=0.0):
-        self.dictionary_name = str(dictionary)
-        self._dictionary = _aruco_dictionary(dictionary)
-        n_ids = int(self._dictionary.bytesList.shape[0])
-        if marker_id is not None:
-            if int(marker_id) != marker_id or not 0 <= int(marker_id) < n_ids:
-                raise ValueError(f'marker_id must be None or an integer in [0, {n_ids}) for '
-                                 f'{dictionary}, got {marker_id!r}')
-            marker_id = int(marker_id)
-        self.marker_id = marker_id
-        if int(corner_refine_win_size) != corner_refine_win_size or corner_refine_win_size < 1:
-            raise ValueError(f'corner_refine_win_size must be a positive integer, got '
-                             f'{corner_refine_win_size!r}')
-        params = cv2.aruco.DetectorParameters()
-        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-        params.cornerRefinementWinSize = int(corner_refine_win_size)
-        # The defaults (30 iterations, stop at 0.1 px) leave the corners 0.1-0.4 px short of
-        # convergence on rendered tags; refining to 0.001 px costs little (4 corners).  The
-        # window is also capped at relativeCornerRefinmentWinSize * module size.
-        params.cornerRefinementMaxIterations = 100
-        params.cornerRefinementMinAccuracy = 0.001
-        params.relativeCornerRefinmentWinSize = 0.6
-        params.minMarkerDistanceRate = _check_positive(
-            'min_marker_distance_rate', min_marker_distance_rate, allow_zero=True)
-        self._detector = cv2.aruco.ArucoDetector(self._dictionary, params)
-        self.last_status = 'none'
-
-    def detect(self, image):
-        """Return one :class:`Detection` per tag found (sorted by id)."""
-        gray = to_gray(image)
-        if gray.dtype != np.uint8:
-            scale = 255.0 / _white_level(gray.dtype)
-            gray = cv2.convertScaleAbs(gray, alpha=scale)
-        corners, ids, _ = self._detector.detectMarkers(np.ascontiguousarray(gray))
-        out = []
-        if ids is not None:
-            for quad, tag in zip(corners, ids.reshape(-1)):
-                if self.marker_id is not None and int(tag) != self.marker_id:
-                    continue
-                quad = quad.reshape(4, 2).astype(float)
-                centre = diagonal_intersection(quad)
-                if centre is None:
-                    continue
-                sides = np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)
-                diag = 0.25 * (np.linalg.norm(quad[2] - quad[0])
-                               + np.linalg.norm(quad[3] - quad[1]))
-                out.append(Detection(uv=centre, id=int(tag),
-                                     quality=float(min(1.0, sides.min() / 32.0)),
-                                     radius_px=float(diag)))
-        out = self._merge_duplicates(out)
-        self.last_status = 'ok' if out else 'none'
-        return out
-
-    @staticmethod
-    def _merge_duplicates(dets):
-        # With minMarkerDistanceRate = 0 OpenCV no longer removes the duplicate candidates it
-        # finds at several adaptive thresholds: the same tag comes back 2-3 times with corners
-        # refined to within ~0.01 px.  Same id and centres within half a tag radius -> one
-        # detection at the mean centre.  Two real tags with one id stay apart.
-        out = []
-        for det in sorted(dets, key=lambda d: d.id):
-            group = next((g for g in out if g[0].id == det.id and np.linalg.norm(
-                g[0].uv - det.uv) < 0.5 * det.radius_px), None)
-            if group is None:
-                out.append([det])
-            else:
-                group.append(det)
-        return [g[0] if len(g) == 1 else Detection(
-            uv=np.mean([d.uv for d in g], axis=0), id=g[0].id,
-            quality=max(d.quality for d in g), radius_px=float(np.mean([d.radius_px for d in g])))
-            for g in out]
-
-
-_DETECTORS = {'sphere': SphereDetector, 'aruco': ArucoDetector}
-
-
-def make_detector(marker_type, **params):
-    """
-    Build the detector for ``marker_type`` ('sphere', 'aruco', 'charuco') with ``params``.
-
-    Unknown marker types and parameter names raise ValueError naming them; values are checked
-    by the detector's constructor (ValueError naming the parameter).
-    """
-    kind = str(marker_type).strip().lower()
-    if kind == 'charuco':
-        return _make_charuco(**params)
-    cls = _DETECTORS.get(kind)
-    if cls is None:
-        raise ValueError(f'marker_type {marker_type!r} is not supported (one of '
-                         f'{", ".join(sorted(_DETECTORS) + ["charuco"])})')
-    accepted = set(inspect.signature(cls.__init__).parameters) - {'self'}
-    unknown = sorted(set(params) - accepted)
-    if unknown:
-        raise ValueError(f'unknown {marker_type} detector parameter(s) {", ".join(unknown)} '
-                         f'(accepted: {", ".join(sorted(accepted))})')
-    return cls(**params)
-
-
-def _make_charuco(rows=None, cols=None, square_size=None, marker_size=None,
-                  dictionary='DICT_6X6_250', legacy=False, min_corners=4, **unknown):
-    """Build a ChArUco detector from board and detector keywords (see frontend.charuco)."""
-    from armcal_ros.frontend.charuco import CharucoBoard, CharucoDetector
-    if unknown:
-        raise ValueError(f'unknown charuco detector parameter(s) {", ".join(sorted(unknown))} '
-                         '(accepted: rows, cols, square_size, marker_size, dictionary, legacy, '
-                         'min_corners)')
-    missing = [k for k, v in (('rows', rows), ('cols', cols), ('square_size', square_size),
-                              ('marker_size', marker_size)) if v is None]
-    if missing:
-        raise ValueError(f'charuco detector needs {", ".join(missing)}')
-    board = CharucoBoard(rows, cols, square_size, marker_size, dictionary, legacy)
-    return CharucoDetector(board, min_corners=min_corners)

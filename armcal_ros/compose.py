@@ -1,0 +1,148 @@
+"""
+The composition root: from typed :class:`~armcal_ros.settings.Settings` to a working pipeline.
+
+The node and the offline CLI both call :func:`build_pipeline`; nothing else wires the parts.
+It reads the robot model, makes the target (a point marker or a ChArUco board), one detector
+per camera, the :class:`~armcal_ros.frontend.collector.SampleCollector` (front end) and the
+:class:`~armcal_ros.engine.CalibrationEngine` with its sample store.  A configuration that
+cannot be built raises ValueError naming the parameters.
+"""
+
+from dataclasses import dataclass
+from typing import Callable, Optional, Tuple
+
+import numpy as np
+
+from armcal_ros.core.kinematic_prior import KinematicData
+from armcal_ros.core.target import optional_pose
+from armcal_ros.engine import CalibrationEngine, EngineSettings
+from armcal_ros.frontend.collector import SampleCollector
+from armcal_ros.frontend.detectors import CharucoBoard, CharucoDetector, make_detector
+from armcal_ros.frontend.samples import BoardTarget
+from armcal_ros.frontend.store import SampleStore
+from armcal_ros.robot.kinematics import KinematicChain
+from armcal_ros.settings import Settings
+
+#: Two samples closer than this (m) are the same place (merged), whatever min_sample_spacing.
+SAME_POINT_TOLERANCE = 0.0005
+
+
+@dataclass
+class Pipeline:
+    """What :func:`build_pipeline` wires: the robot chain, the front end and the engine."""
+
+    chain: Optional[KinematicChain]        # None with pose input
+    board: Optional[CharucoBoard]          # None for a point marker
+    collector: SampleCollector
+    engine: CalibrationEngine
+
+
+def build_chain(settings: Settings, pose_input=None) -> Optional[KinematicChain]:
+    """
+    Return the robot's kinematic chain, or None with pose input (no robot model needed).
+
+    ``pose_input`` None follows the settings (``pose_topic`` set); True when the source itself
+    gives the link's poses (a robot_cal_tools folder).
+    """
+    if settings.inputs.pose_input if pose_input is None else pose_input:
+        return None
+    robot = settings.robot
+    try:
+        return KinematicChain.from_urdf(robot.urdf_text(), robot.base_frame, robot.marker_link)
+    except ValueError as exc:
+        raise ValueError(f'robot model (parameters robot_description/robot_description_file, '
+                         f'base_frame, marker_link): {exc}') from exc
+
+
+def build_board(settings: Settings, data_set_target=None,
+                data_set_guess=None) -> Tuple[Optional[CharucoBoard], Optional[BoardTarget]]:
+    """
+    Return (CharucoBoard, BoardTarget) for a charuco target, else (None, None).
+
+    ``data_set_target`` (rows, cols, square_size, marker_size, dictionary) completes the
+    ``charuco_*`` parameters from a data set's own description; ``data_set_guess`` (4, 4) seeds
+    the mount when ``target_pose_guess`` is empty.
+    """
+    target = settings.target
+    if not target.is_board:
+        return None, None
+    b = target.board.completed(data_set_target)
+    board = CharucoBoard(b.rows, b.cols, b.square_size, b.marker_size, b.dictionary, b.legacy)
+    guess = optional_pose(target.pose_guess or None)
+    if guess is None:
+        guess = data_set_guess
+    return board, BoardTarget(board.points(), guess, target.estimate_mount)
+
+
+def build_detectors(settings: Settings, camera_names, board: Optional[CharucoBoard] = None):
+    """One detector per camera (each tracks its own marker position)."""
+    det, kind = settings.detector, settings.target.marker_type
+    out = {}
+    for name in camera_names:
+        if kind == 'charuco':
+            out[name] = CharucoDetector(board)
+        elif kind == 'sphere':
+            out[name] = make_detector('sphere', min_radius_px=det.sphere_min_radius_px,
+                                      max_radius_px=det.sphere_max_radius_px,
+                                      static_scene=det.sphere_static_scene)
+        else:
+            out[name] = make_detector('aruco', dictionary=det.aruco_dictionary,
+                                      marker_id=det.aruco_id)
+    return out
+
+
+def engine_settings(settings: Settings, board: Optional[BoardTarget] = None) -> EngineSettings:
+    """Return the engine's settings (also used when the node's parameters change at runtime)."""
+    s = settings.schedule
+    return EngineSettings(list(settings.inputs.camera_names), settings.prior, settings.solver,
+                          min_samples=s.min_samples, solve_period_s=s.solve_period_s,
+                          min_new_samples=s.min_new_samples,
+                          base_frame=settings.robot.base_frame, board=board,
+                          marker_link=settings.robot.marker_link).validate()
+
+
+def build_store(settings: Settings, chain: Optional[KinematicChain]) -> SampleStore:
+    """Return an empty sample store bounded by the store settings."""
+    st = settings.store
+    return SampleStore(max_samples=st.max_samples, min_sample_spacing=st.min_sample_spacing,
+                       same_point_tolerance=min(SAME_POINT_TOLERANCE, st.min_sample_spacing),
+                       joint_names=None if chain is None else chain.joint_names)
+
+
+def build_engine(settings: Settings, chain: Optional[KinematicChain],
+                 board: Optional[BoardTarget] = None) -> CalibrationEngine:
+    """
+    Engine and its sample store.
+
+    ``chain`` (None with pose input) gives the kinematic models their Jacobian; a board target
+    has no use for it (those models are refused with a board).
+    """
+    engine_s = engine_settings(settings, board)
+    store = build_store(settings, chain)
+    if chain is None or board is not None:
+        return CalibrationEngine(engine_s, store)
+    offset = np.asarray(settings.robot.marker_offset, float)
+
+    def kinematics(Q):
+        return KinematicData(chain.jacobian_errors(Q, offset), chain.error_names)
+    return CalibrationEngine(engine_s, store, kinematics_fn=kinematics)
+
+
+def build_pipeline(settings: Settings, log: Optional[Callable[[str], None]] = None,
+                   data_set_target=None, data_set_guess=None, pose_input=None) -> Pipeline:
+    """
+    Wire the whole pipeline from ``settings``.
+
+    ``data_set_target`` and ``data_set_guess`` complete a board from a data set's own files
+    (:func:`build_board`); ``pose_input`` as for :func:`build_chain`.  ``log(message)`` receives
+    the front end's rate-limited reports.
+    """
+    chain = build_chain(settings, pose_input)
+    board, target = build_board(settings, data_set_target, data_set_guess)
+    names = list(settings.inputs.camera_names)
+    detectors = build_detectors(settings, names, board)
+    fe, det = settings.front_end, settings.detector
+    collector = SampleCollector(chain, settings.robot.marker_offset, names, detectors,
+                                fe.max_marker_speed, fe.dwell_radius, log=log, board=target,
+                                max_views_per_dwell=det.max_views_per_dwell)
+    return Pipeline(chain, board, collector, build_engine(settings, chain, target))

@@ -1,0 +1,80 @@
+"""
+The calibration handed to users: each camera with its uncertainty and fit figures.
+
+:func:`calibration_from_result` turns the solver's
+:class:`~armcal_ros.core.calibration.CalibrationResult` into a :class:`Calibration`; the engine
+decides whether it replaces the current one, the node publishes it and
+:mod:`armcal_ros.io.results_files` writes and reads it.
+"""
+
+import time
+from dataclasses import dataclass, field
+from typing import Dict
+
+import numpy as np
+
+from armcal_ros.core.calibration import CalibrationResult
+from armcal_ros.core.camera import Camera
+from armcal_ros.core.uncertainty import pose_covariance
+
+POSE_PARAMETERS = ('wx', 'wy', 'wz', 'tx', 'ty', 'tz')
+
+
+@dataclass
+class CameraCalibration:
+    """One camera's accepted calibration and its quality figures."""
+
+    camera: Camera
+    std: Dict[str, float]
+    pose_covariance: np.ndarray          # 6x6 over (x, y, z, rx, ry, rz) of T_base_camera
+    rms_px: float
+    n_observations: int
+    n_inliers: int
+
+
+@dataclass
+class Calibration:
+    """A calibration the engine accepted: cameras, quality, and how it was obtained."""
+
+    cameras: Dict[str, CameraCalibration]
+    model: str
+    cost: float
+    n_samples: int
+    solve_time_s: float
+    solved_at: float                     # wall-clock seconds since the epoch
+    status: str
+    message: str
+    hyperparameters: Dict[str, float] = field(default_factory=dict)
+
+    def summary(self):
+        """Return a JSON-friendly dict (no numpy types)."""
+        cams = {}
+        for name, c in self.cameras.items():
+            t, q = c.camera.pose_in_world()
+            cams[name] = dict(
+                width=c.camera.width, height=c.camera.height, fx=c.camera.fx, fy=c.camera.fy,
+                cx=c.camera.cx, cy=c.camera.cy, dist=[float(v) for v in c.camera.dist],
+                translation=[float(v) for v in t], rotation=[float(v) for v in q],
+                std={k: float(v) for k, v in c.std.items()},
+                pose_covariance=[float(v) for v in np.asarray(c.pose_covariance).ravel()],
+                rms_px=float(c.rms_px), n_observations=int(c.n_observations),
+                n_inliers=int(c.n_inliers))
+        return dict(model=self.model, cost=float(self.cost), n_samples=int(self.n_samples),
+                    solve_time_s=float(self.solve_time_s), solved_at=float(self.solved_at),
+                    status=self.status, message=self.message,
+                    hyperparameters=dict(self.hyperparameters), cameras=cams)
+
+
+def calibration_from_result(result: CalibrationResult, n_samples, hyper=None) -> Calibration:
+    """Turn a solver result into a :class:`Calibration` (pose covariances included)."""
+    adj = result.adjustment
+    cams = {}
+    names = adj.parameter_names
+    for name, est in adj.cameras.items():
+        idx = [names.index(f'{name}/{p}') for p in POSE_PARAMETERS]
+        cov = adj.covariance[np.ix_(idx, idx)]
+        cams[name] = CameraCalibration(est.camera.copy(), dict(est.std),
+                                       pose_covariance(est.camera, cov), est.rms_px,
+                                       est.n_observations, est.n_inliers)
+    return Calibration(cams, adj.model, adj.cost, n_samples, result.time_s, time.time(),
+                       result.status, result.message, dict(hyper or {}))

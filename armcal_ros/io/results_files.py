@@ -1,0 +1,88 @@
+"""
+The files of an accepted calibration besides the camera YAMLs: calibration.json, target.yaml.
+
+``calibration.json`` holds what the camera_calibration_parsers YAML cannot: standard
+deviations, the pose covariance, fit figures and how the calibration was obtained; with the
+``<camera>.yaml`` files it restores a :class:`~armcal_ros.core.results.Calibration` on resume.
+``target.yaml`` holds a board's pose on its link (T_link_target) and, when estimated, its
+standard deviations.
+"""
+
+import json
+import os
+
+import numpy as np
+import yaml
+
+from armcal_ros.core.results import Calibration, CameraCalibration
+from armcal_ros.core.target import pose_matrix, pose_vector
+from armcal_ros.io.calib_files import atomic_write_text, read_cameras, write_cameras
+
+CALIBRATION_FILE = 'calibration.json'
+TARGET_FILE = 'target.yaml'
+
+
+def write_calibration(directory, cal: Calibration, base_frame):
+    """
+    Write ``<camera>.yaml``, ``extrinsics.yaml`` and ``calibration.json`` (each atomically).
+
+    Returns the paths written.
+    """
+    cams = [c.camera for c in cal.cameras.values()]
+    write_cameras(directory, cams, base_frame)
+    written = [os.path.join(directory, f'{c.name}.yaml') for c in cams]
+    written.append(os.path.join(directory, 'extrinsics.yaml'))
+    path = os.path.join(directory, CALIBRATION_FILE)
+    atomic_write_text(path, json.dumps(cal.summary(), indent=1))
+    written.append(path)
+    return written
+
+
+def load_calibration(directory) -> Calibration:
+    """Read a calibration written by :func:`write_calibration`; ValueError names the file."""
+    path = os.path.join(directory, CALIBRATION_FILE)
+    try:
+        with open(path) as f:
+            doc = json.load(f)
+        _, cams = read_cameras(directory, names=list(doc['cameras']))
+    except (OSError, ValueError, KeyError) as exc:
+        raise ValueError(f'{path}: cannot restore the calibration: {exc}') from exc
+    out = {}
+    for cam in cams:
+        d = doc['cameras'][cam.name]
+        out[cam.name] = CameraCalibration(
+            cam, dict(d['std']), np.asarray(d['pose_covariance'], float).reshape(6, 6),
+            float(d['rms_px']), int(d['n_observations']), int(d['n_inliers']))
+    return Calibration(out, doc['model'], doc['cost'], doc['n_samples'], doc['solve_time_s'],
+                       doc['solved_at'], doc['status'], doc['message'],
+                       doc.get('hyperparameters', {}))
+
+
+def target_yaml(T, std, link, estimated):
+    """Return the text of ``target.yaml``: T_link_target and, when estimated, its std."""
+    x = pose_vector(T)
+    lines = [f'# T_{link}_target: pose of the target frame in {link}',
+             f'estimated: {str(bool(estimated)).lower()}',
+             'translation: [' + ', '.join(f'{v:.6f}' for v in x[:3]) + ']',
+             'rotation_xyzw: [' + ', '.join(f'{v:.8f}' for v in x[3:]) + ']']
+    if std is not None:
+        lines.append('std_translation_m: [' + ', '.join(f'{v:.6f}' for v in std[:3]) + ']')
+        lines.append('std_rotation_rad: [' + ', '.join(f'{v:.6f}' for v in std[3:]) + ']')
+    return '\n'.join(lines) + '\n'
+
+
+def write_target(directory, T, std, link, estimated):
+    """Write ``target.yaml`` (atomically); return its path."""
+    path = os.path.join(directory, TARGET_FILE)
+    atomic_write_text(path, target_yaml(T, std, link, estimated))
+    return path
+
+
+def read_target_yaml(path):
+    """Return T_link_target (4, 4) from a ``target.yaml``; ValueError naming the file."""
+    try:
+        with open(path) as f:
+            doc = yaml.safe_load(f)
+        return pose_matrix(doc['translation'], doc['rotation_xyzw'])
+    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f'{path}: cannot read the target pose: {exc}') from exc
