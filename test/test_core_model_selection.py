@@ -1,14 +1,14 @@
-"""Automatic model choice: the Laplace evidence picks the truth where the truth is known."""
-from dataclasses import replace
+"""
+Automatic model choice: the Laplace evidence picks the truth where the truth is known.
 
+Its parts have their own tests: the image noise estimates in test_core_image_noise.py, the
+held-out check in test_core_holdout.py.
+"""
 import numpy as np
 import pytest
 
 from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.calibration import calibrate
-from armcal_ros.core.kinematic_prior import KinematicData
-from armcal_ros.core.holdout import HeldOut, HOLDOUT_FOLDS, HOLDOUT_Z
-from armcal_ros.core.image_noise import estimate_pixel_sigma, pooled_pixel_sigma
 from armcal_ros.core.model_selection import (_local_lengths, _occam_choice, _search_scale,
                                              Candidate, DEFAULT_GRID, HYBRID_MAX_L_FRACTION,
                                              OCCAM_MARGIN, SCALE_BOUNDS, SCALE_EXTENSIONS,
@@ -66,19 +66,6 @@ def test_auto_without_joint_angles_considers_only_point_models():
     assert sel.settings.model == 'correlated'
 
 
-@pytest.mark.parametrize('true_sigma', [0.05, 0.3, 1.0])
-def test_free_network_estimate_recovers_the_image_noise_under_a_bias(true_sigma):
-    # 1 mm of correlated bias is ~0.5 px here: far above the smaller noise levels, so the
-    # estimate must come from the images, not from the fit of the robot's points.
-    prob = make_problem(300, 3, bias_sigma=1e-3, coherence_length=0.3, pixel_sigma=true_sigma)
-    s = SolverSettings(pixel_sigma=0.5)
-    cams, inl = _fixed(prob, s)
-    est = estimate_pixel_sigma(cams, prob.measured, prob.obs, s, inliers=inl)
-    assert est.success
-    assert est.pixel_sigma == pytest.approx(true_sigma, rel=0.15)
-    assert 0 < est.redundancy < 2 * est.n_observations
-
-
 def test_auto_uses_the_estimated_image_noise_not_the_configured_one():
     prob = make_problem(150, 5, bias_sigma=1e-3, coherence_length=0.3, pixel_sigma=0.1)
     s = SolverSettings(pixel_sigma=2.0)
@@ -92,21 +79,6 @@ def test_auto_uses_the_estimated_image_noise_not_the_configured_one():
                         holdout=False, estimate_noise=False,
                         grid={'coherence_length': (0.3,), 'bias_sigma': (1e-3,)})
     assert kept.pixel_sigma == 2.0 and kept.noise is None
-
-
-def test_pooled_scatter_recovers_the_noise_of_pooled_observations():
-    rng = np.random.default_rng(3)
-    sigma = 0.04
-    n = rng.integers(2, 20, 400)
-    spread = []
-    for k in n:
-        uv = rng.normal(0.0, sigma, (k, 2))
-        spread.append(np.sqrt(np.mean(np.sum((uv - uv.mean(axis=0)) ** 2, axis=1))))
-    expected = np.sqrt(np.mean(sigma ** 2 / n))
-    assert pooled_pixel_sigma(spread, n) == pytest.approx(expected, rel=0.05)
-    assert np.isnan(pooled_pixel_sigma([0.1, 0.2], [1, 1]))    # single frames: no scatter
-    with pytest.raises(ValueError, match='spread_px and n_frames'):
-        pooled_pixel_sigma([0.1, 0.2], [3])
 
 
 def test_one_camera_auto_takes_the_pooled_scatter_where_the_free_network_cannot():
@@ -199,45 +171,6 @@ def test_hybrid_field_lengths_are_local_to_the_sampled_workspace(radius):
     assert _local_lengths(lengths, P) == [L for L in lengths if L <= cap]
     # a workspace smaller than every length still gets the shortest one
     assert _local_lengths((10.0, 20.0), P) == [10.0]
-
-
-def _heldout_case(kinematics_of):
-    """Geometric data, and the held-out check with the kinematic data ``kinematics_of`` gives."""
-    prob = make_robot_problem('geometric', 300, 0, n_test=20)
-    s = SolverSettings(pixel_sigma=0.3)
-    cams, inl = _fixed(prob, s)
-    quick = replace(s, max_gate_rounds=0, max_iterations=30, ftol=1e-6)
-    check = HeldOut(cams, prob.measured, prob.obs, quick, kinematics_of(prob.kinematics), inl,
-                    np.random.default_rng(0))
-    simple = Candidate(PriorSettings('independent'), 0.0, 0.0, True)
-    # the evidence is set to win by far more than the margin: only the held-out check decides
-    complex_ = Candidate(PriorSettings('kinematic'), 10.0 * OCCAM_MARGIN, 0.0, True)
-    assert _occam_choice([simple, complex_], OCCAM_MARGIN) is complex_
-    return check, simple, complex_
-
-
-def test_heldout_check_keeps_the_simpler_model_when_the_complex_one_predicts_worse():
-    # Joint angles that do not belong to the points (each sample paired with its neighbour's
-    # joint state): the kinematic model fits the training points through a wrong Jacobian
-    # and predicts unseen points worse than no correction at all.
-    def misaligned(k):
-        return KinematicData(np.roll(k.jacobian, 1, axis=0), k.names, k.sigma)
-    check, simple, complex_ = _heldout_case(misaligned)
-    excess, se, rms_c, rms_s = check.compare(complex_, simple)
-    assert excess > HOLDOUT_Z * se and rms_c > rms_s
-    assert _occam_choice([simple, complex_], OCCAM_MARGIN, check) is simple
-    assert 'held-out' in complex_.holdout_note and check.log[-1]['rejected']
-    # every observation was predicted once, from the fit of the folds that do not hold it
-    assert np.all(np.isfinite(check.all_folds(simple)[check.active]))
-    assert check.folds == HOLDOUT_FOLDS
-
-
-def test_heldout_check_lets_the_right_complex_model_win():
-    check, simple, complex_ = _heldout_case(lambda k: k)
-    excess, se, rms_c, rms_s = check.compare(complex_, simple)
-    assert excess < -HOLDOUT_Z * se and rms_c < rms_s     # clearly better, not just tolerated
-    assert _occam_choice([simple, complex_], OCCAM_MARGIN, check) is complex_
-    assert complex_.holdout_note == '' and not check.log[-1]['rejected']
 
 
 class _Rejecting:

@@ -1,14 +1,22 @@
-"""The online engine: when it solves, warm starts, refusing worse results, save and resume."""
+"""
+The online engine: when it solves, warm starts, refusing worse results, save and resume.
+
+Point samples come from :mod:`armcal_ros.sim.synthetic`; board samples from the board scene's
+Cartesian robot (``board_joint_bag`` of conftest.py, helpers/board_scene.py).
+"""
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.priors import PriorSettings
-from armcal_ros.core.uncertainty import pose_covariance
 from armcal_ros.engine import CalibrationEngine, EngineSettings
+from armcal_ros.frontend.samples import BoardTarget, Observation, Sample
 from armcal_ros.io.results_files import load_calibration
-from armcal_ros.frontend.samples import Observation, Sample
+from armcal_ros.offline import collect_samples
+from armcal_ros.settings import load_settings
 from armcal_ros.sim.synthetic import make_problem
+from helpers.board_scene import BOARD, check_mount, joint_params, K
 
 
 class Clock:
@@ -31,22 +39,24 @@ def _samples(prob):
     return out
 
 
-def _engine(prob, clock, **kw):
-    s = EngineSettings([c.name for c in prob.cameras], PriorSettings('independent'),
+def _engine(prob, clock, samples=(), model='independent', **kw):
+    """Build an engine for the cameras of ``prob`` (pixel sigma 0.3); add ``samples``."""
+    s = EngineSettings([c.name for c in prob.cameras], PriorSettings(model),
                        SolverSettings(pixel_sigma=0.3), **kw)
     eng = CalibrationEngine(s, clock=clock)
     for c in prob.cameras:
         eng.set_image_size(c.name, c.width, c.height)
+    for smp in samples:
+        eng.add_sample(smp)
     return eng
 
 
 def test_solve_schedule_first_solve_and_warm_start():
     prob = make_problem(160, 3)
     clock = Clock()
-    eng = _engine(prob, clock, min_samples=60, solve_period_s=5.0, min_new_samples=10)
     samples = _samples(prob)
-    for s in samples[:59]:
-        eng.add_sample(s)
+    eng = _engine(prob, clock, samples[:59], min_samples=60, solve_period_s=5.0,
+                  min_new_samples=10)
     due, why = eng.solve_due()
     assert not due and '59 of 60' in why
     eng.add_sample(samples[59])
@@ -73,11 +83,9 @@ def test_solve_schedule_first_solve_and_warm_start():
 
 def test_a_clearly_worse_result_does_not_replace_a_good_one():
     prob = make_problem(240, 4)
-    clock = Clock()
-    eng = _engine(prob, clock, min_samples=10, solve_period_s=0.0, min_new_samples=1)
     samples = _samples(prob)
-    for s in samples[:120]:
-        eng.add_sample(s)
+    eng = _engine(prob, Clock(), samples[:120], min_samples=10, solve_period_s=0.0,
+                  min_new_samples=1)
     assert eng.solve().accepted
     good = eng.current
     # cam2's new observations carry 3 px noise: too broad for the gate to call them outliers.
@@ -94,9 +102,7 @@ def test_a_clearly_worse_result_does_not_replace_a_good_one():
 
 def test_save_and_resume_restores_samples_and_calibration(tmp_path):
     prob = make_problem(80, 6)
-    eng = _engine(prob, Clock(), min_samples=10)
-    for s in _samples(prob):
-        eng.add_sample(s)
+    eng = _engine(prob, Clock(), _samples(prob), min_samples=10)
     assert eng.solve().accepted
     files = eng.save(tmp_path)
     assert any(f.endswith('cam1.yaml') for f in files)
@@ -108,26 +114,6 @@ def test_save_and_resume_restores_samples_and_calibration(tmp_path):
     assert np.allclose(a.pose_covariance, b.pose_covariance)
     assert load_calibration(tmp_path).model == 'independent'
     assert len(fresh.store) == len(eng.store)
-
-
-def test_pose_covariance_matches_monte_carlo():
-    prob = make_problem(10, 1)
-    cam = prob.cameras[0]
-    rng = np.random.default_rng(0)
-    A = rng.normal(0, 1e-3, (6, 6))
-    cov = A @ A.T
-    draws = rng.multivariate_normal(np.zeros(6), cov, 20000)
-    out = []
-    from scipy.spatial.transform import Rotation
-    R_wc = cam.rotation.T
-    for d in draws:
-        c = cam.copy()
-        c.apply_pose_increment(d[:3], d[3:])
-        dr = Rotation.from_matrix(c.rotation.T @ R_wc.T).as_rotvec()
-        out.append(np.concatenate([c.center - cam.center, dr]))
-    emp = np.cov(np.array(out).T)
-    ref = pose_covariance(cam, cov)
-    assert np.allclose(emp, ref, atol=0.05 * np.max(np.abs(ref)))
 
 
 def test_settings_are_validated():
@@ -142,13 +128,7 @@ def test_settings_are_validated():
 
 def test_kinematic_model_without_joint_angles_is_refused_with_the_reason():
     prob = make_problem(40, 2)
-    s = EngineSettings([c.name for c in prob.cameras], PriorSettings('kinematic'),
-                       SolverSettings(pixel_sigma=0.3), min_samples=10)
-    eng = CalibrationEngine(s)
-    for c in prob.cameras:
-        eng.set_image_size(c.name, c.width, c.height)
-    for smp in _samples(prob):
-        eng.add_sample(smp)
+    eng = _engine(prob, Clock(), _samples(prob), 'kinematic', min_samples=10)
     out = eng.solve()
     assert not out.accepted and 'needs joint angles' in out.reason
 
@@ -156,9 +136,8 @@ def test_kinematic_model_without_joint_angles_is_refused_with_the_reason():
 def test_resume_does_not_solve_the_same_samples_again(tmp_path):
     prob = make_problem(60, 6)
     samples = _samples(prob)
-    eng = _engine(prob, Clock(), min_samples=10, solve_period_s=0.0, min_new_samples=1)
-    for s in samples[:40]:
-        eng.add_sample(s)
+    eng = _engine(prob, Clock(), samples[:40], min_samples=10, solve_period_s=0.0,
+                  min_new_samples=1)
     assert eng.solve().accepted
     eng.save(tmp_path)
     fresh = _engine(prob, Clock(), min_samples=10, solve_period_s=0.0, min_new_samples=1)
@@ -173,3 +152,30 @@ def test_resume_does_not_solve_the_same_samples_again(tmp_path):
     again = _engine(prob, Clock(), min_samples=10, solve_period_s=0.0, min_new_samples=1)
     again.load(tmp_path)
     assert again.solve_due()[0]
+
+
+@pytest.mark.slow
+def test_engine_solves_board_samples_and_resumes_its_mount(board_joint_bag, tmp_path):
+    front = collect_samples(str(board_joint_bag / 'bag'),
+                            load_settings(joint_params(tmp_path / 'p.yaml', board_joint_bag)))
+    board = BoardTarget(BOARD.points(), None, estimate_mount=True)
+    settings = EngineSettings(['cam'], PriorSettings('correlated'),
+                              SolverSettings(pixel_sigma=0.2, free_distortion=()),
+                              min_samples=5, board=board, marker_link='tool0')
+    eng = CalibrationEngine(settings)
+    eng.set_image_size('cam', 800, 600)
+    for s in front.store.samples:
+        eng.add_sample(s)
+    out = eng.solve()
+    assert out.accepted, out.reason
+    assert out.calibration.model == 'correlated+mount'
+    assert abs(out.calibration.cameras['cam'].camera.fx - K[0, 0]) < 3
+    T = eng.T_link_target
+    check_mount(np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_quat()]))
+    eng.save(tmp_path / 'o')
+    fresh = CalibrationEngine(settings)
+    said = fresh.load(tmp_path / 'o')
+    assert 'mount' in said and len(fresh.store) == 8
+    np.testing.assert_allclose(fresh.T_link_target, T, atol=1e-6)
+    with pytest.raises(ValueError, match='8 saved samples are board samples'):
+        CalibrationEngine(EngineSettings(['cam'])).load(tmp_path / 'o')

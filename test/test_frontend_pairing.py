@@ -1,4 +1,4 @@
-"""Tests for joint history, time pairing, stillness and dwell pooling."""
+"""Tests for joint history, time pairing, stillness, dwell pooling and its views cap."""
 
 import numpy as np
 import pytest
@@ -6,7 +6,7 @@ import pytest
 from armcal_ros.frontend.detectors import Detection
 from armcal_ros.frontend.pairing import (
     DEFAULT_MAX_MARKER_SPEED, DwellPooler, FramePairer, JointHistory, JointStatus,
-    max_speed_for_smear, PairStatus)
+    max_speed_for_smear, PairedFrame, PairStatus)
 
 JOINTS = ('shoulder', 'elbow')
 L1, L2 = 0.5, 0.4
@@ -137,6 +137,7 @@ def test_ring_keeps_the_newest_capacity_samples():
 
 # -- FramePairer ---------------------------------------------------------------------------
 
+
 def dwell_then_move(pairer, t0_ms=0, t1_ms=1000, speed_rad_s=0.2, rate_hz=200):
     """Joint states: still at q0 until t1_ms, then the shoulder turns at speed_rad_s."""
     frames = []
@@ -212,6 +213,7 @@ def test_gap_in_joint_states_refuses_the_frame():
 
 
 # -- DwellPooler ---------------------------------------------------------------------------
+
 
 def _still(camera, t_ms, q, status=PairStatus.STILL):
     from armcal_ros.frontend.pairing import PairedFrame
@@ -354,3 +356,76 @@ def test_frames_are_decided_in_batches():
     assert k * 5 == 150, 'decided once the history reaches 30 + 20 + 100 ms'
     assert [f.camera for f in out] == ['a', 'b']
     assert all(f.status is PairStatus.STILL for f in out)
+
+
+# -- the views cap of a board: at most max_views detections per camera and dwell --------
+
+def _frame(camera, stamp_ms, point=(0.0, 0.0, 0.0)):
+    return PairedFrame(camera, stamp_ms * MS, None, PairStatus.STILL, q=np.array(point, float),
+                       point=np.array(point, float), speed=0.0)
+
+
+def _dets(rng, n_ids=3):
+    return [Detection(uv=np.array([100.0 + 50 * i, 200.0]) + rng.normal(0, 0.3, 2), id=i,
+                      quality=1.0, radius_px=10.0) for i in range(n_ids)]
+
+
+def _identity_fk(Q):
+    return np.asarray(Q, float)
+
+
+def test_pooler_cap_counts_views_per_camera_and_pools_the_first_ones():
+    rng = np.random.default_rng(0)
+    capped = DwellPooler(_identity_fk, min_frames=1, max_views=3)
+    reference = DwellPooler(_identity_fk, min_frames=1)
+    needed = {'a': 0, 'b': 0}
+    for k in range(12):
+        cam = 'ab'[k % 2]
+        f = _frame(cam, 10 * k)
+        dets = _dets(rng) if k != 2 else []      # camera a's second frame shows nothing
+        wants = capped.needs_detection(f)
+        needed[cam] += wants
+        assert capped.add(f, dets if wants else ()) == []
+        # The reference sees every frame, with detections only where the capped one looked.
+        reference.add(f, dets if wants else ())
+    # Camera a needed 4 searches (one found nothing), b 3; the rest were skipped.
+    assert needed == {'a': 4, 'b': 3}
+    [s] = capped.flush()
+    [r] = reference.flush()
+    for cam in 'ab':
+        assert s.observations[cam].n_frames == 3
+        np.testing.assert_array_equal(s.observations[cam].uv, r.observations[cam].uv)
+        assert s.observations[cam].spread_px == r.observations[cam].spread_px
+        assert s.observations[cam].stamp_ns == r.observations[cam].stamp_ns
+    np.testing.assert_array_equal(s.q, r.q)
+    assert s.stamp_ns == r.stamp_ns
+
+
+def test_pooler_cap_ignores_late_detections_and_restarts_with_a_new_dwell():
+    rng = np.random.default_rng(1)
+    pooler = DwellPooler(_identity_fk, min_frames=1, max_views=2)
+    first = [_dets(rng) for _ in range(4)]
+    for k, d in enumerate(first):
+        pooler.add(_frame('a', 10 * k), d)           # a caller that detects anyway
+    far = _frame('a', 50, point=(0.01, 0.0, 0.0))
+    assert pooler.needs_detection(far)                # a new dwell: search again
+    assert not pooler.needs_detection(_frame('a', 50))
+    assert pooler.needs_detection(_frame('a', 50_000))    # after a gap: a new dwell
+    assert pooler.needs_detection(_frame('b', 50))         # another camera
+    moving = PairedFrame('a', 50 * MS, None, PairStatus.MOVING, q=np.zeros(3),
+                         point=np.zeros(3), speed=1.0)
+    assert pooler.needs_detection(moving)
+    [s] = pooler.add(far, _dets(rng))
+    expected = np.mean([[d.uv for d in dets] for dets in first[:2]], axis=0)
+    np.testing.assert_allclose(s.observations['a'].uv, expected, atol=1e-12)
+    assert s.observations['a'].n_frames == 2
+    assert len(pooler.flush()[0].observations['a'].ids) == 3
+
+
+def test_pooler_cap_validation():
+    assert DwellPooler(_identity_fk).max_views == 0
+    for bad in (-1, 1.5, True, '3'):
+        with pytest.raises(ValueError, match='max_views'):
+            DwellPooler(_identity_fk, max_views=bad)
+    with pytest.raises(ValueError, match=r'max_views .* >= min_frames \(2\)'):
+        DwellPooler(_identity_fk, min_frames=2, max_views=1)

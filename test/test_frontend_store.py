@@ -1,12 +1,15 @@
-"""Tests for samples and the sample store."""
+"""Tests for samples and the sample store (point and board samples)."""
 
+import json
 import os
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
-from armcal_ros.frontend.samples import Observation, Sample
+from armcal_ros.frontend.samples import BoardTarget, Observation, Sample
 from armcal_ros.frontend.store import AddResult, FILE_NAME, SampleStore
+from helpers.board_scene import BOARD
 
 
 def obs(uv=(100.0, 200.0), n_frames=5, spread=0.05, ids=(0,), stamp=7):
@@ -189,3 +192,42 @@ def test_load_errors(tmp_path):
     smaller = SampleStore.load(str(tmp_path), max_samples=5, min_sample_spacing=0.0001)
     assert smaller.max_samples == 5 and len(smaller) == 1
     assert smaller.same_point_tolerance == 0.0001            # clamped to the new spacing
+
+
+def _board_sample(pose, ref_link):
+    ref = ref_link @ pose[:3, :3].T + pose[:3, 3]
+    return Sample(point_nominal=ref.mean(axis=0), pose=pose, reference_points=ref,
+                  observations={'cam': Observation(np.zeros((3, 2)), [0, 1, 2])})
+
+
+def test_store_tells_turned_board_views_apart():
+    ref = BoardTarget(BOARD.points(), np.eye(4)).reference_points_in_link()
+    ref = ref - ref.mean(axis=0)                    # centred: a turn keeps the centre
+    store = SampleStore(min_sample_spacing=0.005)
+    turned = np.eye(4)
+    turned[:3, :3] = Rotation.from_rotvec([0, 0, 0.2]).as_matrix()
+    assert store.add(_board_sample(np.eye(4), ref)) is AddResult.ADDED
+    assert store.add(_board_sample(turned, ref)) is AddResult.ADDED
+    assert store.add(_board_sample(turned, ref)) is AddResult.MERGED
+    point = Sample(point_nominal=[1, 0, 0],
+                   observations={'cam': Observation(np.zeros((1, 2)), [0])})
+    with pytest.raises(ValueError, match='one kind of target'):
+        store.add(point)
+
+
+def test_version_1_store_files_still_load(tmp_path):
+    store = SampleStore()
+    for k in range(3):
+        store.add(Sample(point_nominal=[0.1 * k, 0, 0], q=[k, 0.0],
+                         observations={'cam': Observation([[10.0 * k, 5.0]], [0])}))
+    store.save(tmp_path)
+    path = tmp_path / FILE_NAME
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files if k not in ('has_reference', 'reference_points')}
+    meta = json.loads(str(data['meta']))
+    meta['version'] = 1
+    data['meta'] = np.array(json.dumps(meta))
+    np.savez_compressed(path, **data)
+    back = SampleStore.load(tmp_path)
+    assert len(back) == 3 and all(s.reference_points is None for s in back)
+    np.testing.assert_allclose(sorted(s.point_nominal[0] for s in back), [0, 0.1, 0.2])

@@ -10,10 +10,6 @@ own ROS_DOMAIN_ID with discovery kept on localhost, every wait is bounded, and e
 is killed in teardown.
 """
 import os
-import signal
-import subprocess
-import sys
-import threading
 import time
 from types import SimpleNamespace
 
@@ -25,177 +21,39 @@ rclpy = pytest.importorskip('rclpy')
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
-from rcl_interfaces.srv import SetParameters  # noqa: E402
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor  # noqa: E402
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image, JointState  # noqa: E402
 from sensor_msgs.srv import SetCameraInfo  # noqa: E402
-from std_srvs.srv import Trigger  # noqa: E402
 from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 
 from armcal_ros.io.calib_files import read_camera_info, read_cameras  # noqa: E402
 from armcal_ros.ros import conversions as conv  # noqa: E402
-from ros_test_env import isolated_ros_env  # noqa: E402
+from helpers.params_files import PUMA_URDF, write_params  # noqa: E402
+from helpers.ros_nodes import (diag_values, refused_start, start_node, start_replay,  # noqa: E402
+                               wait_until, write_sim_bag_with_short_dwells)
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CAMS = ['cam1', 'cam2', 'cam3']
 RATE = 2.0
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+NODE_PARAMS = dict(
+    robot_description_file=PUMA_URDF, marker_link='marker', marker_offset=[0.0, 0.0, 0.0],
+    solve_period=2.0, min_samples=15,
+    # One continuous model: auto's discrete choice can differ between the node and the CLI when
+    # the node loses a dwell, and then the estimates need not agree to within one standard
+    # deviation; auto itself is tested through the CLI (test_offline.py) and the engine
+    # (test_engine.py).
+    noise_model='correlated')
 
 
-def wait_until(pred, timeout, what):
-    """Poll ``pred`` until true; fail naming ``what`` after ``timeout`` seconds."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = pred()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f'timed out after {timeout} s waiting for {what}')
-
-
-class Proc:
-    """A subprocess with its output in a file; stopped with SIGINT, killed if it hangs."""
-
-    def __init__(self, args, env, log_path):
-        self.log_path = log_path
-        self._log = open(log_path, 'w')
-        self.p = subprocess.Popen(args, env=env, cwd=ROOT, stdout=self._log,
-                                  stderr=subprocess.STDOUT)
-
-    def alive(self):
-        return self.p.poll() is None
-
-    def log(self):
-        with open(self.log_path) as f:
-            return f.read()
-
-    def stop(self, timeout=30.0):
-        if self.alive():
-            self.p.send_signal(signal.SIGINT)
-            try:
-                self.p.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.kill()
-        self._log.close()
-        return self.p.returncode
-
-    def kill(self):
-        if self.alive():
-            self.p.kill()
-            self.p.wait(10)
-
-
-class Client:
-    """The test's own rclpy node, spun in a background thread."""
-
-    def __init__(self):
-        self.ctx = rclpy.Context()
-        rclpy.init(context=self.ctx)
-        self.node = rclpy.create_node('armcal_test_client', context=self.ctx)
-        self.executor = MultiThreadedExecutor(num_threads=2, context=self.ctx)
-        self.executor.add_node(self.node)
-        self._stop = threading.Event()
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self):
-        # Destroying a subscription or client from the test thread while the executor builds
-        # its wait set can raise InvalidHandle in the executor thread (an rclpy race); that
-        # killed the plain spin() once and every later call timed out.  Keep spinning.
-        while not self._stop.is_set() and self.ctx.ok():
-            try:
-                self.executor.spin_once(timeout_sec=0.1)
-            except _rclpy.InvalidHandle:
-                continue
-            except ExternalShutdownException:
-                return
-
-    def record(self, mtype, topic, qos=LATCHED):
-        """Subscribe; return the list every (receive time, message) is appended to."""
-        got = []
-        sub = self.node.create_subscription(mtype, topic,
-                                            lambda m: got.append((time.monotonic(), m)), qos)
-        return got, sub
-
-    def call(self, srv_type, name, request, timeout=60.0):
-        cli = self.node.create_client(srv_type, name)
-        try:
-            assert cli.wait_for_service(timeout_sec=15.0), f'service {name} not available'
-            fut = cli.call_async(request)
-            wait_until(fut.done, timeout, f'the answer of {name}')
-            return fut.result()
-        finally:
-            self.node.destroy_client(cli)
-
-    def trigger(self, name, timeout=60.0):
-        return self.call(Trigger, f'/armcal/{name}', Trigger.Request(), timeout)
-
-    def set_parameters(self, **values):
-        req = SetParameters.Request()
-        req.parameters = [Parameter(k, value=v).to_parameter_msg() for k, v in values.items()]
-        return self.call(SetParameters, '/armcal/set_parameters', req).results
-
-    def close(self):
-        self._stop.set()
-        self.thread.join(10.0)
-        self.executor.shutdown(timeout_sec=5.0)
-        self.node.destroy_node()
-        self.ctx.try_shutdown()
-
-
-def diag_values(records, name, after=0.0):
-    """Latest diagnostics values of status ``name`` received after ``after`` (or None)."""
-    for t, msg in reversed(records):
-        if t < after:
-            return None
-        v = conv.diagnostic_values(msg, name)
-        if v is not None:
-            return v
-    return None
-
-
-# -- fixtures ---------------------------------------------------------------------------
-
-@pytest.fixture(scope='module')
-def ros_env(tmp_path_factory):
-    yield from isolated_ros_env(tmp_path_factory, domain_offset=0)
-
+# -- fixtures (ros_env and client: conftest.py) -----------------------------------------
 
 @pytest.fixture(scope='module')
 def sim(tmp_path_factory):
     """Simulate a 40 s geometric-error cell with short dwells (~33 samples), ground truth."""
-    from armcal_ros.sim.cell import simulate_cell, SimSettings
-    from armcal_ros.sim.output import write_sim_bag
-    root = tmp_path_factory.mktemp('sim')
-    bag = root / 'bag'
-    settings = SimSettings(duration=40.0, dwell=(0.5, 0.8), speed_fraction=0.8,
-                           min_move_time=0.3)
-    write_sim_bag(simulate_cell('geometric', seed=3, settings=settings), str(bag),
-                  compress=False)
+    bag = write_sim_bag_with_short_dwells(tmp_path_factory.mktemp('sim') / 'bag', 40.0)
     return SimpleNamespace(bag=str(bag), truth=str(bag / 'ground_truth'),
                            markers=np.load(bag / 'ground_truth' / 'markers.npz'))
-
-
-def write_params(path, **values):
-    import yaml
-    base = dict(robot_description_file=os.path.join(ROOT, 'urdf', 'puma560.urdf'),
-                marker_link='marker', marker_offset=[0.0, 0.0, 0.0], solve_period=2.0,
-                min_samples=15,
-                # One continuous model: auto's discrete choice can differ between the node and
-                # the CLI when the node loses a dwell, and then the estimates need not agree to
-                # within one standard deviation (seen once in a fresh-clone run); auto itself is
-                # tested through the CLI (test_offline.py) and the engine (test_engine.py).
-                noise_model='correlated')
-    base.update(values)
-    with open(path, 'w') as f:
-        yaml.safe_dump({'armcal': {'ros__parameters': base}}, f)
-    return str(path)
 
 
 @pytest.fixture(scope='module')
@@ -203,51 +61,8 @@ def offline(sim, tmp_path_factory):
     from armcal_ros.offline import calibrate_bag
     from armcal_ros.settings import load_settings
     root = tmp_path_factory.mktemp('offline')
-    values = load_settings(write_params(root / 'params.yaml'))
+    values = load_settings(write_params(root / 'params.yaml', NODE_PARAMS))
     return calibrate_bag(sim.bag, values, str(root / 'out')).report
-
-
-@pytest.fixture(scope='module')
-def client(ros_env):
-    c = Client()
-    yield c
-    c.close()
-
-
-def start_node(env, params, log_path):
-    return Proc([sys.executable, '-m', 'armcal_ros.ros.node', '--ros-args', '--params-file',
-                 params], env, log_path)
-
-
-def replay_and_calibrate(client, env, params, bag, log_dir, duration, rate, procs, diag,
-                         info, delay=0.5):
-    """
-    Start the node, replay ``bag`` into it and call ~/calibrate once its solve has ended.
-
-    The node runs with ``params``; every camera's CameraInfo in ``info`` (the recorder lists)
-    is awaited after the call.  The replay waits ``delay`` seconds for discovery first.  The
-    processes go into ``procs`` (the caller kills them).
-    Returns (node, monotonic time of the call).
-    """
-    node = start_node(env, params, log_dir / 'node.log')
-    procs.append(node)
-    wait_until(lambda: diag_values(diag, 'armcal: calibration') or not node.alive(), 30,
-               'node diagnostics')
-    assert node.alive(), node.log()
-    replay = Proc([sys.executable, '-m', 'armcal_ros.cli', 'replay', str(bag), '--rate',
-                   str(rate), '--delay', str(delay)], env, log_dir / 'replay.log')
-    procs.append(replay)
-    replay.p.wait(timeout=duration / rate + 60.0)
-    assert replay.p.returncode == 0, replay.log()
-    wait_until(lambda: (diag_values(diag, 'armcal: calibration') or {}).get(
-        'solving') == 'False', 120, 'the background solve to end')
-    t_cal = time.monotonic()
-    res = client.trigger('calibrate')
-    assert res.success, res.message
-    for c, got in info.items():
-        wait_until(lambda: got and got[-1][0] >= t_cal, 120, f'CameraInfo of {c} after '
-                   '~/calibrate')
-    return node, t_cal
 
 
 @pytest.fixture(scope='module')
@@ -265,7 +80,7 @@ def live(ros_env, sim, client, tmp_path_factory):
         return serve
     for cam in CAMS:
         client.node.create_service(SetCameraInfo, f'/{cam}/set_camera_info', driver(cam))
-    s.params = write_params(root / 'params.yaml', output_dir=s.out,
+    s.params = write_params(root / 'params.yaml', NODE_PARAMS, output_dir=s.out,
                             set_camera_info_services=[f'/{c}/set_camera_info' for c in CAMS])
     s.info = {c: client.record(CameraInfo, f'/armcal/{c}/camera_info')[0] for c in CAMS}
     s.pose = {c: client.record(PoseWithCovarianceStamped, f'/armcal/{c}/pose')[0]
@@ -277,8 +92,7 @@ def live(ros_env, sim, client, tmp_path_factory):
         s.procs.append(s.node)
         wait_until(lambda: diag_values(s.diag, 'armcal: calibration'), 30, 'node A diagnostics')
         t0 = time.monotonic()
-        replay = Proc([sys.executable, '-m', 'armcal_ros.cli', 'replay', sim.bag, '--rate',
-                       str(RATE), '--delay', '0.5'], ros_env, root / 'replay.log')
+        replay = start_replay(ros_env, sim.bag, RATE, root / 'replay.log')
         s.procs.append(replay)
         replay.p.wait(timeout=40.0 / RATE + 60.0)
         s.replay_wall = time.monotonic() - t0
@@ -530,15 +344,9 @@ def test_reset_forgets_the_samples(live, client):
     (dict(pixel_sgima=1.0), ['unknown parameter', 'pixel_sgima']),
 ])
 def test_bad_parameters_stop_the_start_with_the_reason(ros_env, tmp_path, extra, words):
-    params = write_params(tmp_path / 'bad.yaml', output_dir=str(tmp_path / 'out'), **extra)
-    proc = start_node(ros_env, params, tmp_path / 'node.log')
-    try:
-        proc.p.wait(timeout=60)
-    finally:
-        proc.kill()
-    log = proc.log()
-    assert proc.p.returncode == 2, log
-    assert 'refusing to start' in log
+    params = write_params(tmp_path / 'bad.yaml', NODE_PARAMS, output_dir=str(tmp_path / 'out'),
+                          **extra)
+    log = refused_start(ros_env, params, tmp_path / 'node.log')
     for w in words:
         assert w in log, log
 
@@ -552,8 +360,7 @@ def test_replay_loops_and_stops_cleanly_on_sigint(ros_env, client, tmp_path):
                                 ['a'], [0.01 * k])
     got, sub = client.record(JointState, '/loop_test/joint_states',
                              QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
-    proc = Proc([sys.executable, '-m', 'armcal_ros.cli', 'replay', str(bag), '--loop',
-                 '--rate', '2', '--delay', '0.5'], ros_env, tmp_path / 'replay.log')
+    proc = start_replay(ros_env, bag, 2, tmp_path / 'replay.log', '--loop')
     try:
         wait_until(lambda: len(got) >= 100, 30, 'more messages than one pass of the bag')
         assert proc.stop() == 0, proc.log()

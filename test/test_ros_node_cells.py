@@ -8,7 +8,7 @@ parameter file the simulator wrote for the cell (nothing else but the output dir
 solve period and the noise model), must subscribe to the compressed topics, pair the shuffled
 joints by name, and publish CameraInfo and poses for exactly those two cameras close to the
 truth (focal within 3 %, camera centre within 40 mm: test_offline.py's tolerances).
-Helpers, QoS and the process hygiene are those of test_ros_node.py.
+Helpers, QoS and the process hygiene: helpers/ros_nodes.py and conftest.py.
 """
 
 import numpy as np
@@ -23,9 +23,8 @@ from sensor_msgs.msg import CameraInfo  # noqa: E402
 
 from armcal_ros.io.calib_files import read_cameras  # noqa: E402
 from armcal_ros.sim.cells import CELLS  # noqa: E402
-from ros_test_env import isolated_ros_env  # noqa: E402
-from test_ros_node import (Client, diag_values, replay_and_calibrate,  # noqa: E402
-                           wait_until)
+from helpers.ros_nodes import (check_camera_info, diag_values,  # noqa: E402
+                               replay_and_calibrate, wait_until)
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
@@ -33,18 +32,6 @@ CELL = 'ur5-2cam'
 CAMS = list(CELLS[CELL].sim_settings().camera_names)
 RATE = 2.0
 DURATION = 45.0
-
-
-@pytest.fixture(scope='module')
-def ros_env(tmp_path_factory):
-    yield from isolated_ros_env(tmp_path_factory, domain_offset=50)
-
-
-@pytest.fixture(scope='module')
-def client(ros_env):
-    c = Client()
-    yield c
-    c.close()
 
 
 @pytest.fixture(scope='module')
@@ -87,12 +74,8 @@ def test_node_calibrates_a_ur5_with_two_compressed_colour_cameras(ros_env, clien
     assert all(int(final[f'samples_{c}']) > 0 for c in CAMS), final
     truth = {c.name: c for c in read_cameras(str(ur5_bag / 'ground_truth'))[1]}
     assert sorted(truth) == sorted(CAMS)
+    check_camera_info(info, truth, CAMS)
     for c in CAMS:
-        msg = info[c][-1][1]
-        K = np.asarray(msg.k).reshape(3, 3)
-        assert (msg.width, msg.height) == (640, 480)
-        assert abs(K[0, 0] / truth[c].fx - 1.0) < 0.03, (c, K[0, 0], truth[c].fx)
-        assert abs(K[1, 1] / truth[c].fy - 1.0) < 0.03, (c, K[1, 1], truth[c].fy)
         p_ = pose[c][-1][1].pose.pose.position
         centre = np.array([p_.x, p_.y, p_.z])
         assert np.linalg.norm(centre - truth[c].center) < 0.040, (c, centre, truth[c].center)

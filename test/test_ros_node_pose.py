@@ -5,7 +5,7 @@ A 30 s simulated bag carrying the marker link's pose (and the joint states, whic
 node does not subscribe to) is replayed at 2x into ``calibrator_node`` started without any robot
 model; ``~/calibrate`` at the end must give CameraInfo for every camera close to the truth.  A
 pose-input node refuses the models that need joint angles at start-up, with the reason.
-Helpers, QoS and the process hygiene are those of test_ros_node.py.
+Helpers, QoS and the process hygiene: helpers/ros_nodes.py and conftest.py.
 """
 
 import os
@@ -15,11 +15,14 @@ import pytest
 
 rclpy = pytest.importorskip('rclpy')
 
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from sensor_msgs.msg import CameraInfo  # noqa: E402
 
 from armcal_ros.io.calib_files import read_cameras  # noqa: E402
-from ros_test_env import isolated_ros_env  # noqa: E402
-from test_ros_node import Client, replay_and_calibrate, start_node  # noqa: E402
+from helpers.board_scene import BOARD_SIZE, params as board_params  # noqa: E402
+from helpers.params_files import write_params  # noqa: E402
+from helpers.ros_nodes import (check_camera_info, refused_start,  # noqa: E402
+                               replay_and_calibrate, write_sim_bag_with_short_dwells)
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 
@@ -27,48 +30,21 @@ CAMS = ['cam1', 'cam2', 'cam3']
 POSE_TOPIC = '/tool_pose'
 RATE = 2.0
 DURATION = 30.0
-
-
-@pytest.fixture(scope='module')
-def ros_env(tmp_path_factory):
-    yield from isolated_ros_env(tmp_path_factory, domain_offset=101)
-
-
-@pytest.fixture(scope='module')
-def client(ros_env):
-    c = Client()
-    yield c
-    c.close()
-
-
-def write_params(path, **values):
-    import yaml
-    base = dict(marker_link='marker', marker_offset=[0.0, 0.0, 0.0], solve_period=2.0,
-                min_samples=12, pose_topic=POSE_TOPIC, pose_type='pose_stamped',
-                noise_model='correlated', resume=False)
-    base.update(values)
-    with open(path, 'w') as f:
-        yaml.safe_dump({'armcal': {'ros__parameters': base}}, f)
-    return str(path)
+NODE_PARAMS = dict(marker_link='marker', marker_offset=[0.0, 0.0, 0.0], solve_period=2.0,
+                   min_samples=12, pose_topic=POSE_TOPIC, pose_type='pose_stamped',
+                   noise_model='correlated', resume=False)
 
 
 @pytest.fixture(scope='module')
 def pose_sim(tmp_path_factory):
-    from armcal_ros.sim.cell import simulate_cell, SimSettings
-    from armcal_ros.sim.output import write_sim_bag
-    bag = tmp_path_factory.mktemp('posesim') / 'bag'
-    settings = SimSettings(duration=DURATION, dwell=(0.5, 0.8), speed_fraction=0.8,
-                           min_move_time=0.3)
-    write_sim_bag(simulate_cell('geometric', seed=3, settings=settings), str(bag),
-                  compress=False, pose_topic=POSE_TOPIC, pose_type='pose_stamped')
-    return bag
+    return write_sim_bag_with_short_dwells(tmp_path_factory.mktemp('posesim') / 'bag', DURATION,
+                                           pose_topic=POSE_TOPIC, pose_type='pose_stamped')
 
 
 def test_pose_input_replay_gives_camera_info(ros_env, client, pose_sim, tmp_path):
     out = tmp_path / 'out'
-    params = write_params(tmp_path / 'params.yaml', output_dir=str(out))
+    params = write_params(tmp_path / 'params.yaml', NODE_PARAMS, output_dir=str(out))
     info = {c: client.record(CameraInfo, f'/armcal/{c}/camera_info')[0] for c in CAMS}
-    from diagnostic_msgs.msg import DiagnosticArray
     diag, _ = client.record(DiagnosticArray, '/diagnostics', 10)
     procs = []
     try:
@@ -80,29 +56,18 @@ def test_pose_input_replay_gives_camera_info(ros_env, client, pose_sim, tmp_path
         for p in procs:
             p.kill()
     truth = {c.name: c for c in read_cameras(str(pose_sim / 'ground_truth'))[1]}
-    for c in CAMS:
-        msg = info[c][-1][1]
-        K = np.asarray(msg.k).reshape(3, 3)
-        assert (msg.width, msg.height) == (640, 480)
-        assert abs(K[0, 0] / truth[c].fx - 1.0) < 0.03, (c, K[0, 0], truth[c].fx)
-        assert abs(K[1, 1] / truth[c].fy - 1.0) < 0.03, (c, K[1, 1], truth[c].fy)
+    check_camera_info(info, truth, CAMS)
     assert os.path.exists(out / 'extrinsics.yaml')
 
 
 def test_pose_input_node_refuses_models_needing_joint_angles(ros_env, tmp_path):
-    params = write_params(tmp_path / 'bad.yaml', output_dir=str(tmp_path / 'out'),
+    params = write_params(tmp_path / 'bad.yaml', NODE_PARAMS, output_dir=str(tmp_path / 'out'),
                           noise_model='kinematic')
-    proc = start_node(ros_env, params, tmp_path / 'node.log')
-    try:
-        proc.p.wait(timeout=60)
-    finally:
-        proc.kill()
-    log = proc.log()
-    assert proc.p.returncode == 2, log
-    assert 'refusing to start' in log and 'noise_model and pose_topic' in log, log
+    log = refused_start(ros_env, params, tmp_path / 'node.log')
+    assert 'noise_model and pose_topic' in log, log
 
 
-def test_board_with_pose_input_live_equals_offline(ros_env, client, tmp_path):
+def test_board_with_pose_input_live_equals_offline(ros_env, client, board_pose_bag, tmp_path):
     """
     Give the same samples and calibration live and offline for a pose-input ChArUco bag.
 
@@ -113,17 +78,12 @@ def test_board_with_pose_input_live_equals_offline(ros_env, client, tmp_path):
     from armcal_ros.frontend.store import SampleStore
     from armcal_ros.offline import calibrate_bag
     from armcal_ros.settings import load_settings
-    from test_charuco_pose_bag import write_bag
-    from test_rct_cli import params as board_params
-    bag = tmp_path / 'boardbag'
-    write_bag(str(bag))
+    bag = board_pose_bag
     params = board_params(tmp_path / 'board.yaml', pose_topic='/tool_pose',
-                          pose_type='pose_stamped', charuco_rows=7, charuco_cols=5,
-                          charuco_square_size=0.04, charuco_marker_size=0.02,
-                          solve_period=1.0, resume=False, output_dir=str(tmp_path / 'live'))
-    offline = calibrate_bag(str(bag), load_settings(params), str(tmp_path / 'offline'))
+                          pose_type='pose_stamped', **BOARD_SIZE, solve_period=1.0,
+                          resume=False, output_dir=str(tmp_path / 'live'))
+    offline = calibrate_bag(bag, load_settings(params), str(tmp_path / 'offline'))
     info = {'cam': client.record(CameraInfo, '/armcal/cam/camera_info')[0]}
-    from diagnostic_msgs.msg import DiagnosticArray
     diag, _ = client.record(DiagnosticArray, '/diagnostics', 10)
     procs = []
     try:

@@ -1,4 +1,9 @@
-"""Board targets on a link: mount maths, hand-eye, and board calibration on synthetic views."""
+"""
+Board calibration on synthetic views: cameras and the board's mount on the link recovered.
+
+The board is seen by one or two static cameras in views posed to face camera 0; the corners are
+projected by the true cameras with 0.2 px noise (the mount's maths: test_core_target.py).
+"""
 
 import numpy as np
 import pytest
@@ -9,19 +14,11 @@ from armcal_ros.core.board_calibration import (BoardData, calibrate_board, Camer
                                                MountSettings)
 from armcal_ros.core.camera import Camera
 from armcal_ros.core.priors import PriorSettings
-from armcal_ros.core.target import (correct_mount, hand_eye, invert, mount_jacobian,
-                                    mount_points, pose_matrix, rotation_angle_deg)
+from armcal_ros.core.target import correct_mount, invert, mount_points, rotation_angle_deg
 from armcal_ros.frontend.detectors import CharucoBoard
+from helpers.board_scene import transform
 
-
-def _T(rotvec, t):
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
-    T[:3, 3] = t
-    return T
-
-
-MOUNT = _T([0.3, -2.0, 0.4], [0.05, 0.11, 0.20])
+MOUNT = transform([0.3, -2.0, 0.4], [0.05, 0.11, 0.20])
 BOARD = CharucoBoard(7, 5, 0.036, 0.018, 'DICT_6X6_250')
 
 
@@ -63,45 +60,6 @@ def make_scene(n_views=14, noise_px=0.2, seed=1, width=1600, height=1200, camera
     return data, specs, cams
 
 
-def test_mount_jacobian_matches_finite_differences():
-    rng = np.random.default_rng(0)
-    poses = np.array([_T(rng.normal(0, 1, 3), rng.normal(0, 0.5, 3)) for _ in range(3)])
-    view = np.array([0, 1, 2, 2])
-    pts = rng.normal(0, 0.1, (4, 3))
-    J = mount_jacobian(poses, MOUNT, view, pts)
-    X0 = mount_points(poses, MOUNT, view, pts)
-    h = 1e-7
-    for k in range(6):
-        dp = np.zeros(6)
-        dp[k] = h
-        Xk = mount_points(poses, correct_mount(MOUNT, dp), view, pts)
-        assert np.allclose((Xk - X0) / h, J[:, :, k], atol=1e-6)
-
-
-def test_hand_eye_recovers_exact_transforms_and_tolerates_noise():
-    rng = np.random.default_rng(2)
-    T_cb = _T([0.2, 2.5, -0.3], [0.1, -0.3, 1.2])
-    B = np.array([_T(rng.normal(0, 0.7, 3), rng.normal(0, 0.3, 3)) for _ in range(8)])
-    A = np.array([T_cb @ b @ MOUNT for b in B])
-    he = hand_eye(B, A)
-    assert np.allclose(he.T_camera_base, T_cb, atol=1e-9)
-    assert np.allclose(he.T_link_target, MOUNT, atol=1e-9)
-    assert he.residual_m < 1e-9
-    noisy = np.array([a @ _T(rng.normal(0, 2e-3, 3), rng.normal(0, 1e-3, 3)) for a in A])
-    he = hand_eye(B, noisy)
-    assert np.linalg.norm(he.T_link_target[:3, 3] - MOUNT[:3, 3]) < 0.01
-    assert rotation_angle_deg(he.T_link_target[:3, :3], MOUNT[:3, :3]) < 0.5
-    with pytest.raises(ValueError, match='3 or more'):
-        hand_eye(B[:2], A[:2])
-
-
-def test_pose_matrix_checks_its_quaternion():
-    T = pose_matrix([1, 2, 3], [0, 0, np.sin(0.25), np.cos(0.25)])
-    assert np.allclose(T[:3, 3], [1, 2, 3])
-    with pytest.raises(ValueError, match='unit length'):
-        pose_matrix([0, 0, 0], [0, 0, 0, 2])
-
-
 @pytest.mark.parametrize('seeded', [False, True])
 def test_fixed_board_calibration_recovers_camera_and_mount(seeded):
     data, specs, truth = make_scene()
@@ -140,7 +98,7 @@ def test_two_cameras_and_a_fixed_mount():
 def test_independent_model_with_mount_absorbs_pose_noise():
     data, specs, truth = make_scene(seed=4)
     rng = np.random.default_rng(5)
-    data.poses = np.array([p @ _T(rng.normal(0, 2e-4, 3), rng.normal(0, 2e-4, 3))
+    data.poses = np.array([p @ transform(rng.normal(0, 2e-4, 3), rng.normal(0, 2e-4, 3))
                            for p in data.poses])
     res = calibrate_board(specs, data, PriorSettings(model='independent', point_sigma=3e-4),
                           SolverSettings(free_distortion=('k1', 'k2')))

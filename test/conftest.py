@@ -1,0 +1,57 @@
+"""
+Fixtures shared by the test modules; the plain helpers they use are in ``helpers/``.
+
+pytest puts this folder on sys.path for this file (it is not a package), so the tests import
+``helpers.<module>`` from any working directory.  The ROS fixtures import rclpy only when a test
+asks for them, after ``pytest.importorskip('rclpy')``: the other tests run without ROS.
+"""
+
+import pytest
+
+# Plain asserts in the helpers report their operands as the tests' own asserts do.
+pytest.register_assert_rewrite('helpers')
+
+
+@pytest.fixture(scope='module')
+def ros_env(request, tmp_path_factory):
+    """
+    Give the requesting module its own ROS 2 environment; yield it for subprocesses, restore.
+
+    Its own ROS_DOMAIN_ID (from the pid and the module's name, never another module's of this
+    run), a fresh ROS_LOG_DIR and discovery on localhost only (helpers.ros_nodes).
+    """
+    pytest.importorskip('rclpy')
+    from helpers.ros_nodes import isolated_ros_env
+    yield from isolated_ros_env(tmp_path_factory, request.module.__name__)
+
+
+@pytest.fixture(scope='module')
+def client(ros_env):
+    """Spin the test's own rclpy node, in the module's domain, in a background thread."""
+    from helpers.ros_nodes import Client
+    c = Client()
+    yield c
+    c.close()
+
+
+@pytest.fixture(scope='session')
+def board_pose_bag(tmp_path_factory):
+    """Write the board scene as a bag: a PoseStamped link pose and images (8 dwells)."""
+    from helpers.board_scene import write_pose_bag
+    path = str(tmp_path_factory.mktemp('posebag') / 'bag')
+    write_pose_bag(path)
+    return path
+
+
+@pytest.fixture(scope='session')
+def board_joint_bag(tmp_path_factory):
+    """
+    Write the board scene carried by a Cartesian robot: a folder with ``bag``, ``robot.urdf``.
+
+    The bag holds the joint states at 100 Hz and the images at 10 Hz (8 dwells of 1 s).
+    """
+    from helpers.board_scene import CARTESIAN_URDF, write_joint_bag
+    d = tmp_path_factory.mktemp('boardjoints')
+    write_joint_bag(str(d / 'bag'))
+    (d / 'robot.urdf').write_text(CARTESIAN_URDF)
+    return d

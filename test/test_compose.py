@@ -1,0 +1,69 @@
+"""The composition root: settings in, the wired pipeline out, for each target and input."""
+
+import numpy as np
+import pytest
+
+from armcal_ros.compose import build_board, build_pipeline, engine_settings
+from armcal_ros.frontend.detectors import ArucoDetector, CharucoDetector, SphereDetector
+from armcal_ros.params import defaults
+from armcal_ros.settings import settings_from_values
+from helpers.params_files import PUMA_URDF
+
+BOARD = dict(marker_type='charuco', charuco_rows=7, charuco_cols=5, charuco_square_size=0.04,
+             charuco_marker_size=0.02, noise_model='fixed')
+
+
+def _settings(**kw):
+    return settings_from_values({**defaults(), 'robot_description_file': PUMA_URDF,
+                                 'marker_link': 'marker', **kw})
+
+
+def test_sphere_with_joint_input_gets_a_chain_and_the_kinematic_jacobian():
+    pipe = build_pipeline(_settings(camera_names=['l', 'r'], image_topics=['/l', '/r']))
+    assert pipe.chain is not None and pipe.board is None
+    assert sorted(pipe.collector.detectors) == ['l', 'r']
+    assert all(isinstance(d, SphereDetector) for d in pipe.collector.detectors.values())
+    assert pipe.collector.detectors['l'] is not pipe.collector.detectors['r']
+    assert pipe.engine.kinematics_fn is not None
+    assert list(pipe.engine.store.joint_names) == list(pipe.chain.joint_names)
+    kin = pipe.engine.kinematics_fn(np.zeros((2, len(pipe.chain.joint_names))))
+    assert kin.jacobian.shape == (2, 3, len(pipe.chain.error_names))
+
+
+def test_pose_input_needs_no_robot_model():
+    pipe = build_pipeline(_settings(pose_topic='/tool', robot_description_file='',
+                                    marker_type='aruco', aruco_id=3, noise_model='correlated'))
+    assert pipe.chain is None and pipe.collector.pose_input
+    assert pipe.engine.kinematics_fn is None
+    det = pipe.collector.detectors['cam1']
+    assert isinstance(det, ArucoDetector) and det.marker_id == 3
+
+
+def test_a_board_gets_its_target_and_a_folder_completes_it():
+    pipe = build_pipeline(_settings(estimate_marker_offset=True, **BOARD))
+    assert isinstance(pipe.collector.detectors['cam1'], CharucoDetector)
+    target = pipe.engine.settings.board
+    assert target is not None and target.estimate_mount and target.T_link_target is None
+    assert len(target.points) == len(pipe.board.points()) == 24
+    assert pipe.engine.kinematics_fn is None      # the board's mount, not the arm's errors
+    # A data set's target.yaml fills unset sizes; its mount guess seeds the target.
+    guess = np.eye(4)
+    guess[:3, 3] = [0.01, 0.02, 0.03]
+    s = _settings(marker_type='charuco', estimate_marker_offset=True, noise_model='fixed')
+    board, target = build_board(s, (7, 5, 0.04, 0.02, 'DICT_6X6_250'), guess)
+    assert (board.rows, board.cols) == (7, 5)
+    np.testing.assert_array_equal(target.T_link_target, guess)
+
+
+def test_an_unreadable_robot_model_names_its_parameters():
+    with pytest.raises(ValueError, match='robot_description_file.*cannot read'):
+        build_pipeline(_settings(robot_description_file='/nonexistent.urdf'))
+    with pytest.raises(ValueError, match='robot model .*marker_link'):
+        build_pipeline(_settings(marker_link='no_such_link'))
+
+
+def test_engine_settings_follow_the_settings():
+    s = _settings(min_samples=9, solve_period=3.0, noise_model='independent')
+    e = engine_settings(s)
+    assert (e.min_samples, e.solve_period_s, e.prior.model) == (9, 3.0, 'independent')
+    assert e.camera_names == ['cam1', 'cam2', 'cam3'] and e.marker_link == 'marker'

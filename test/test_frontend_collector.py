@@ -1,0 +1,168 @@
+"""
+SampleCollector, the front end: poses or joint states and images in, samples out.
+
+A board needs one view per camera and dwell, so the collector searches at most
+``max_views_per_dwell`` still frames that show it per camera and dwell; a sphere is never capped.
+The detectors are stand-ins that replay given detections (:class:`RecordingDetector`).
+"""
+
+import inspect
+
+import numpy as np
+import pytest
+
+from armcal_ros.frontend.collector import SampleCollector
+from armcal_ros.frontend.detectors import Detection
+from armcal_ros.frontend.image_decode import encode_raw_image
+from armcal_ros.frontend.samples import BoardTarget
+from armcal_ros.params import BY_NAME, check_value
+from helpers.board_scene import BOARD
+
+MS = 1_000_000
+
+
+class RecordingDetector:
+    """A detector stand-in: its results in order, every call recorded."""
+
+    def __init__(self, results):
+        self.results = iter(results)
+        self.calls = []
+
+    def detect(self, image):
+        out = next(self.results)
+        self.calls.append(out)
+        return out
+
+
+def _image_msg(img):
+    class Msg:
+        pass
+    m = Msg()
+    for k, v in encode_raw_image(img, 'mono8').items():
+        setattr(m, k, v)
+    return m
+
+
+def _feed(collector, cameras, dwells=((0, 1000), (1500, 2500)), period_ms=50):
+    """
+    Pose input: still at one place per dwell (ms ranges), a 0.5 m/s move between them.
+
+    Images every ``period_ms`` per camera; returns the samples.
+    """
+    img_msg = _image_msg(np.full((24, 32), 128, np.uint8))
+    samples = []
+    end = dwells[-1][1]
+    places = [np.array([0.1 * i, 0.0, 0.0]) for i in range(len(dwells))]
+
+    def where(t):
+        for i, (a, b) in enumerate(dwells):
+            if t <= b:
+                if t >= a or i == 0:
+                    return places[i]
+                s = (t - dwells[i - 1][1]) / (a - dwells[i - 1][1])
+                return (1 - s) * places[i - 1] + s * places[i]
+        return places[-1]
+
+    events = [(t, None) for t in range(0, end + 200, 10)]
+    events += [(t + 3 + j, c) for t in range(0, end, period_ms) for j, c in enumerate(cameras)]
+    for t, cam in sorted(events, key=lambda e: e[0]):
+        if cam is None:
+            samples += collector.add_pose(t * MS, where(t), [0, 0, 0, 1])
+        else:
+            samples += collector.add_image(cam, t * MS, img_msg)
+    return samples + collector.flush()
+
+
+def _board_collector(results, **kw):
+    target = BoardTarget(BOARD.points(), np.eye(4))
+    dets = {c: RecordingDetector(results()) for c in ('c1', 'c2')}
+    return SampleCollector(None, [0, 0, 0], ['c1', 'c2'], dets, board=target, **kw), dets
+
+
+def _board_results(seed):
+    rng = np.random.default_rng(seed)
+    while True:
+        yield [Detection(uv=np.array([300.0 + 40 * i, 200.0]) + rng.normal(0, 0.2, 2), id=i,
+                         quality=1.0, radius_px=20.0) for i in range(BOARD.n_corners)]
+
+
+def test_collector_caps_board_detections_per_dwell_and_camera():
+    col, dets = _board_collector(lambda: _board_results(7))
+    assert col.pooler.max_views == 3
+    samples = _feed(col, ['c1', 'c2'])
+    assert len(samples) == 2
+    # 2 dwells x 3 views per camera; every other still frame skipped undecoded.
+    assert [len(d.calls) for d in dets.values()] == [6, 6]
+    assert col.counts['detections'] == 12
+    assert col.counts['frames_skipped_dwell_full'] == col.counts['frames_still'] - 12 > 20
+    # Each sample pools exactly the views the detector gave it, in order.
+    for cam, d in dets.items():
+        for k, s in enumerate(samples):
+            views = np.array([[x.uv for x in call] for call in d.calls[3 * k:3 * k + 3]])
+            obs = s.observations[cam]
+            assert obs.n_frames == 3
+            np.testing.assert_allclose(obs.uv, views.mean(axis=0), atol=1e-12)
+            np.testing.assert_array_equal(obs.ids, np.arange(BOARD.n_corners))
+    # Without the cap every still frame is searched; the dwells and poses are the same.
+    free, free_dets = _board_collector(lambda: _board_results(7), max_views_per_dwell=0)
+    free_samples = _feed(free, ['c1', 'c2'])
+    assert free.counts['frames_still'] == col.counts['frames_still']
+    assert free.counts['detections'] == free.counts['frames_still']
+    assert 'frames_skipped_dwell_full' not in free.counts
+    assert len(free_samples) == 2
+    for s, f in zip(samples, free_samples):
+        np.testing.assert_array_equal(s.pose, f.pose)
+        assert s.observations['c1'].n_frames == 3 < f.observations['c1'].n_frames
+
+
+def test_collector_cap_counts_only_frames_that_show_the_board():
+    def results():
+        gen = _board_results(3)
+        while True:
+            yield []                              # the board hidden in every other frame
+            yield next(gen)
+    col, dets = _board_collector(results, max_views_per_dwell=2)
+    samples = _feed(col, ['c1', 'c2'], dwells=((0, 1000),))
+    assert len(samples) == 1
+    assert [len(d.calls) for d in dets.values()] == [4, 4]
+    assert [sum(bool(c) for c in d.calls) for d in dets.values()] == [2, 2]
+    assert col.counts['frames_no_marker'] == 4 and col.counts['detections'] == 4
+
+
+def test_sphere_is_not_capped_by_default_or_when_set():
+    def sphere_results():
+        rng = np.random.default_rng(5)
+        while True:
+            yield [Detection(uv=np.array([320.0, 240.0]) + rng.normal(0, 0.1, 2), id=0,
+                             quality=1.0, radius_px=6.0)]
+    for kw in ({}, {'max_views_per_dwell': 3}):
+        dets = {c: RecordingDetector(sphere_results()) for c in ('c1', 'c2')}
+        col = SampleCollector(None, [0, 0, 0], ['c1', 'c2'], dets, **kw)
+        assert col.pooler.max_views == 0
+        samples = _feed(col, ['c1', 'c2'])
+        assert len(samples) == 2
+        assert col.counts['detections'] == col.counts['frames_still'] > 30
+        assert 'frames_skipped_dwell_full' not in col.counts
+        assert sum(len(d.calls) for d in dets.values()) == col.counts['frames_still']
+        assert all(s.observations['c1'].n_frames > 3 for s in samples)
+
+
+def test_parameter_default_matches_the_collector_and_is_checked():
+    p = BY_NAME['max_views_per_dwell']
+    default = inspect.signature(SampleCollector).parameters['max_views_per_dwell'].default
+    assert p.type == 'int' and p.default == default == 3
+    assert check_value('max_views_per_dwell', 0) == 0
+    with pytest.raises(ValueError, match='max_views_per_dwell'):
+        check_value('max_views_per_dwell', -1)
+    with pytest.raises(ValueError, match='max_views_per_dwell'):
+        SampleCollector(None, [0, 0, 0], ['c'], {'c': None}, max_views_per_dwell=-2)
+
+
+def test_collector_without_a_robot_model_takes_poses_not_joint_states():
+    col = SampleCollector(None, [0, 0, 0.1], ['cam'], {'cam': object()})
+    assert col.pose_input
+    assert col.add_joint_state(0, ['j1'], [0.0]) == []
+    assert col.counts['joint_state_unused'] == 1
+    assert col.add_pose(0, [0, 0, 0], [0, 0, 0, 1]) == []
+    assert col.add_pose(1, [0, 0, 0], [0, 0, 0, 5]) == []
+    assert col.counts['poses'] == 2 and col.counts['pose_invalid'] == 1

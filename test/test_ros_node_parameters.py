@@ -1,0 +1,124 @@
+"""
+The node's parameters on a real rclpy node without DDS traffic: descriptors, checks, TF.
+
+The node is built in the test's process with parameter overrides, in the module's own ROS
+environment (the ``ros_env`` fixture of conftest.py).
+"""
+import pytest
+
+from armcal_ros.params import BY_NAME, PARAMS
+from armcal_ros.ros import conversions as conv
+from helpers.cameras import camera
+from helpers.params_files import PUMA_URDF
+
+pytestmark = pytest.mark.timeout(60)
+
+
+@pytest.fixture
+def ros_context(ros_env):
+    import rclpy
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    ctx.try_shutdown()
+
+
+def _overrides(tmp_path, **extra):
+    from rclpy.parameter import Parameter
+    values = dict(robot_description_file=PUMA_URDF, marker_link='marker',
+                  output_dir=str(tmp_path / 'out'), resume=False)
+    values.update(extra)
+    return [Parameter(k, value=v) for k, v in values.items()]
+
+
+def test_descriptors_declare_types_ranges_and_read_only(ros_context, tmp_path):
+    from rcl_interfaces.msg import ParameterType
+
+    from armcal_ros.ros.node import CalibratorNode, RUNTIME_PARAMETERS
+    node = CalibratorNode(context=ros_context, parameter_overrides=_overrides(tmp_path))
+    try:
+        for p in PARAMS:
+            d = node.describe_parameter(p.name)
+            assert d.description and d.read_only == (p.name not in RUNTIME_PARAMETERS)
+        d = node.describe_parameter('pixel_sigma')
+        assert d.type == ParameterType.PARAMETER_DOUBLE
+        assert d.floating_point_range[0].from_value == BY_NAME['pixel_sigma'].minimum
+        assert node.describe_parameter('min_samples').integer_range[0].from_value == 1
+        assert node.get_parameter('set_camera_info_services').value == []
+        assert node.describe_parameter('camera_names').read_only
+        assert node.values['camera_names'] == ['cam1', 'cam2', 'cam3']
+    finally:
+        node.close(solve_timeout=1.0)
+        node.destroy_node()
+
+
+@pytest.mark.parametrize('extra, words', [
+    (dict(pixel_sigma=-1.0), ['pixel_sigma']),
+    (dict(noise_model='gaussian'), ['noise_model', 'must be one of']),
+    (dict(camera_names=['cam1', 'cam2']), ['camera_names', 'image_topics', 'same length']),
+    (dict(marker_link='no_such_link'), ['marker_link', 'no_such_link']),
+    (dict(pixel_sigma=1), ['pixel_sigma', 'double']),
+    (dict(pose_topic='/flange_pose', noise_model='kinematic'), ['noise_model', 'pose_topic']),
+])
+def test_bad_parameters_refuse_the_start(ros_context, tmp_path, extra, words):
+    from armcal_ros.ros.node import CalibratorNode, ParameterError
+    with pytest.raises(ParameterError) as err:
+        CalibratorNode(context=ros_context, parameter_overrides=_overrides(tmp_path, **extra))
+    for w in words:
+        assert w in str(err.value)
+
+
+def test_runtime_parameter_sets_are_checked(ros_context, tmp_path):
+    from rclpy.parameter import Parameter
+
+    from armcal_ros.ros.node import CalibratorNode
+    node = CalibratorNode(context=ros_context, parameter_overrides=_overrides(tmp_path))
+    try:
+        r = node.set_parameters([Parameter('point_sigma', value=-0.1)])[0]
+        assert not r.successful and 'point_sigma' in r.reason
+        r = node.set_parameters([Parameter('kernel', value='gaussian')])[0]
+        assert not r.successful and 'kernel' in r.reason and 'must be one of' in r.reason
+        r = node.set_parameters([Parameter('set_camera_info_services', value=['/a'])])[0]
+        assert not r.successful and 'set_camera_info_services' in r.reason
+        r = node.set_parameters([Parameter('camera_names', value=['a', 'b', 'c'])])[0]
+        assert not r.successful and 'camera_names' in r.reason
+        assert node.engine.settings.solver.pixel_sigma == 0.5
+        r = node.set_parameters([Parameter('pixel_sigma', value=0.3),
+                                 Parameter('noise_model', value='independent')])[0]
+        assert r.successful, r.reason
+        assert node.engine.settings.solver.pixel_sigma == 0.3
+        assert node.engine.settings.prior.model == 'independent'
+        assert node.values['noise_model'] == 'independent'
+    finally:
+        node.close(solve_timeout=1.0)
+        node.destroy_node()
+
+
+def test_static_tf_through_tf2_ros_when_importable(ros_context, tmp_path, monkeypatch):
+    import sys
+    import types
+
+    from armcal_ros.ros.node import CalibratorNode
+    sent = []
+
+    class Broadcaster:
+        def __init__(self, node):
+            self.node = node
+
+        def sendTransform(self, transforms):
+            sent.extend(transforms)
+    node = CalibratorNode(context=ros_context, parameter_overrides=_overrides(tmp_path))
+    try:
+        monkeypatch.setitem(sys.modules, 'tf2_ros', None)      # import fails: one warning
+        node._publish_tf([camera()], conv.time_msg(0))
+        node._publish_tf([camera()], conv.time_msg(0))
+        assert node._tf_warned and not sent
+        monkeypatch.setitem(sys.modules, 'tf2_ros',
+                            types.SimpleNamespace(StaticTransformBroadcaster=Broadcaster))
+        node._publish_tf([camera()], conv.time_msg(0))
+        assert [(t.header.frame_id, t.child_frame_id) for t in sent] == \
+            [('base_link', 'cam1_optical_frame')]
+        assert sent[0].transform.translation.x == pytest.approx(camera().center[0])
+    finally:
+        node.close(solve_timeout=1.0)
+        node.destroy_node()

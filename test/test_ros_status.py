@@ -1,0 +1,64 @@
+"""The node's status: camera frusta, bias vectors and the diagnostics (no DDS traffic)."""
+import numpy as np
+import pytest
+
+from armcal_ros.ros import conversions as conv
+from armcal_ros.ros.status import bias_vectors, diagnostic_statuses, frustum_segments, NodeState
+from helpers.cameras import camera, points
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def test_frustum_far_corners_project_to_the_image_corners():
+    cam = camera()
+    cam.dist = np.zeros(5)
+    segs = frustum_segments(cam, depth=0.3)
+    assert segs.shape == (8, 2, 3)
+    np.testing.assert_allclose(segs[:4, 0], np.tile(cam.center, (4, 1)))
+    uv = cam.project(segs[:4, 1])
+    np.testing.assert_allclose(uv, [[0, 0], [640, 0], [640, 480], [0, 480]], atol=1e-9)
+    np.testing.assert_allclose(cam.to_camera(segs[:4, 1])[:, 2], 0.3)
+    with pytest.raises(ValueError, match='depth'):
+        frustum_segments(cam, 0.0)
+
+
+def test_bias_vectors_pair_each_estimate_with_its_own_sample():
+    nominal = points(40, seed=3)
+    rng = np.random.default_rng(4)
+    estimated = nominal + rng.normal(0, 0.0007, nominal.shape)
+    order = rng.permutation(40)
+    segs = bias_vectors(nominal, estimated[order])
+    assert segs.shape == (40, 2, 3)
+    np.testing.assert_allclose(segs[:, 0], nominal[order])
+    np.testing.assert_allclose(segs[:, 1], estimated[order])
+    far = estimated.copy()
+    far[0] += 0.05
+    assert len(bias_vectors(nominal, far)) == 39
+
+
+def _state(**kw):
+    base = dict(camera_names=['cam1', 'cam2'], n_samples=3, min_samples=20,
+                samples_per_camera={'cam1': 3, 'cam2': 1}, image_sizes={'cam1': (640, 480)},
+                solving=False, n_solves=0, n_rejected=0,
+                input_counts={'time_jump': 2, 'image_decode_error': 1},
+                queue_dropped={'image': 0, 'joint': 0}, queue_depth={'image': 1, 'joint': 0})
+    base.update(kw)
+    return NodeState(**base)
+
+
+def test_diagnostics_before_a_calibration():
+    st = diagnostic_statuses(_state())
+    assert [s.name for s in st] == ['armcal: calibration', 'armcal: cam1', 'armcal: cam2']
+    main = st[0]
+    assert main.level == 1 and main.message.startswith('collecting samples (3 of 20)')
+    assert main.values['input_time_jump'] == '2'
+    assert main.values['input_image_decode_error'] == '1'
+    assert main.values['samples_cam2'] == '1'
+    assert st[1].values['image_size'] == '640x480' and st[2].values['image_size'] == 'no image yet'
+    msg = conv.diagnostic_array_msg(st, conv.time_msg(0))
+    from diagnostic_msgs.msg import DiagnosticStatus
+    assert msg.status[0].level == DiagnosticStatus.WARN
+    assert conv.diagnostic_values(msg, 'armcal: calibration')['samples'] == '3'
+    assert conv.diagnostic_values(msg, 'nope') is None
+    dropped = diagnostic_statuses(_state(queue_dropped={'image': 4}))[0]
+    assert 'dropped' in dropped.message and dropped.values['queue_dropped_image'] == '4'
