@@ -19,6 +19,7 @@ from typing import Any, Callable, Dict, Optional
 import yaml
 
 from armcal_ros.core.camera import DISTORTION_NAMES
+from armcal_ros.core.intrinsics_prior import INTRINSICS_MODES
 from armcal_ros.core.kernels import KERNELS
 from armcal_ros.core.priors import KINEMATIC_MODELS, NOISE_MODELS
 from armcal_ros.core.robust import LOSSES
@@ -27,6 +28,8 @@ NAME_RE = re.compile(r'^[A-Za-z0-9_]+$')
 MARKER_TYPES = ('sphere', 'aruco', 'charuco')
 POSE_TYPES = ('pose_stamped', 'transform_stamped')
 NODE_NAME = 'armcal'
+#: Parameters that name files: a relative path is resolved against the parameter file's folder.
+PATH_PARAMETERS = ('robot_description_file', 'intrinsics_files')
 
 
 @dataclass(frozen=True)
@@ -82,6 +85,11 @@ def _topics(v):
 def _distortion(v):
     bad = [d for d in v if d not in DISTORTION_NAMES]
     return f'unknown terms {bad}; allowed {list(DISTORTION_NAMES)}' if bad else None
+
+
+def _modes(v):
+    bad = [m for m in v if m not in INTRINSICS_MODES]
+    return f'unknown modes {bad}; allowed {list(INTRINSICS_MODES)}' if bad else None
 
 
 def _pose7(v):
@@ -197,6 +205,23 @@ PARAMS = [
     Param('pose_topic', 'string', '',
           'geometry_msgs PoseStamped or TransformStamped topic with marker_link\'s pose in '
           'base_frame; when set it replaces joint states and the robot model (pose input)'),
+    # Given intrinsics.
+    Param('intrinsics_mode', 'string[]', [],
+          'per camera (same order as camera_names; one entry: every camera): estimate (from '
+          'the data), fixed (given in intrinsics_files; only the pose is estimated) or prior '
+          '(a Gaussian prior around the given values); empty: estimate every camera', _modes),
+    Param('intrinsics_files', 'string[]', [],
+          'per camera, a camera_info YAML (camera_calibration_parsers format, e.g. what the '
+          'driver or camera_calibration wrote) with the given K and D; needed for the cameras '
+          'whose intrinsics_mode is fixed or prior, "" for the others; relative paths are '
+          'resolved against the parameter file\'s directory'),
+    Param('intrinsics_sigma_px', 'double', 0.0,
+          'prior standard deviation of fx, fy, cx and cy, pixels, for intrinsics_mode prior '
+          '(no default: how good a factory calibration is depends on the camera)', _nonneg,
+          minimum=0.0),
+    Param('intrinsics_sigma_dist', 'double', 0.0,
+          'prior standard deviation of each free distortion coefficient for intrinsics_mode '
+          'prior; 0 holds the given distortion fixed', _nonneg, minimum=0.0),
     Param('pose_type', 'string', 'pose_stamped',
           'message type on pose_topic for the node: pose_stamped (geometry_msgs/PoseStamped) '
           'or transform_stamped (geometry_msgs/TransformStamped); a bag says its own type',
@@ -279,6 +304,24 @@ def check_all(values: Dict[str, Any], require_robot_model=True):
                          'available with a charuco board (the board solver\'s global '
                          'parameters are the board\'s mount on the link, not the arm\'s '
                          'kinematic errors); use fixed, independent, correlated or auto')
+    modes, files = values['intrinsics_mode'], values['intrinsics_files']
+    if len(modes) not in (0, 1, len(cams)):
+        raise ValueError(f'parameter intrinsics_mode must be empty, one mode, or one per camera '
+                         f'({len(cams)}), got {len(modes)}')
+    given = [c for c, m in zip(cams, modes * len(cams) if len(modes) == 1 else modes)
+             if m != 'estimate']
+    if given:
+        if len(files) != len(cams):
+            raise ValueError(f'parameters intrinsics_mode and intrinsics_files: cameras {given} '
+                             f'have given intrinsics, so intrinsics_files needs one entry per '
+                             f'camera ({len(cams)}), got {len(files)}')
+        missing = [c for c in given if not files[cams.index(c)]]
+        if missing:
+            raise ValueError(f'parameter intrinsics_files: no file for cameras {missing}, '
+                             f'whose intrinsics_mode is fixed or prior')
+    if 'prior' in modes and not values['intrinsics_sigma_px'] > 0:
+        raise ValueError('parameters intrinsics_mode and intrinsics_sigma_px: the prior mode '
+                         'needs intrinsics_sigma_px > 0 (the given values\' standard deviation)')
     if require_robot_model and not values['pose_topic'] and \
             not values['robot_description'] and not values['robot_description_file']:
         raise ValueError('parameters robot_description or robot_description_file: one must be '
@@ -326,12 +369,28 @@ def load_params_file(path, node_name=NODE_NAME, require_robot_model=True, overri
     values = defaults()
     for k, v in merged.items():
         values[k] = check_value(k, v)
-    rel = values['robot_description_file']
-    if rel and not os.path.isabs(rel):
-        values['robot_description_file'] = os.path.normpath(
-            os.path.join(os.path.dirname(os.path.abspath(path)), rel))
+    resolve_paths(values, [os.path.dirname(os.path.abspath(path))])
     check_all(values, require_robot_model)
     return values
+
+
+def resolve_paths(values, directories):
+    """
+    Resolve the relative paths of :data:`PATH_PARAMETERS` in place.
+
+    A relative path becomes the first ``directories`` entry where it exists (the last one when
+    it exists nowhere, so the error names a full path).
+    """
+    def resolve(rel):
+        if not rel or os.path.isabs(rel) or not directories:
+            return rel
+        for d in directories:
+            if os.path.exists(os.path.join(d, rel)):
+                return os.path.normpath(os.path.join(d, rel))
+        return os.path.normpath(os.path.join(directories[-1], rel))
+    for name in PATH_PARAMETERS:
+        v = values[name]
+        values[name] = [resolve(x) for x in v] if isinstance(v, list) else resolve(v)
 
 
 def default_output_dir():

@@ -18,7 +18,8 @@ part           parameters
 ``front_end``  max_marker_speed, dwell_radius
 ``store``      max_samples, min_sample_spacing
 ``prior``      noise_model, point_sigma, bias_sigma, coherence_length, kernel
-``solver``     pixel_sigma, free_distortion, robust_loss(_scale), outlier_gate_sigmas
+``solver``     pixel_sigma, free_distortion, robust_loss(_scale), outlier_gate_sigmas,
+               intrinsics_mode, intrinsics_files, intrinsics_sigma_px, intrinsics_sigma_dist
 ``schedule``   min_samples, solve_period, min_new_samples
 ``outputs``    output_dir, publish_tf, set_camera_info_services, resume
 =============  ===========================================================================
@@ -28,8 +29,12 @@ import math
 from dataclasses import dataclass, replace
 from typing import Any, Dict, Optional, Tuple
 
+import yaml
+
 from armcal_ros.core.adjustment import SolverSettings
+from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
 from armcal_ros.core.priors import PriorSettings
+from armcal_ros.io.calib_files import camera_from_info_dict
 from armcal_ros.params import check_all, check_value, default_output_dir, load_params_file
 
 
@@ -207,10 +212,42 @@ def prior_settings(values) -> PriorSettings:
 
 def solver_settings(values) -> SolverSettings:
     """Build and validate the solver settings; ValueError names the parameter."""
+    given = given_intrinsics(values)
     return _named(lambda: SolverSettings(
         pixel_sigma=values['pixel_sigma'], free_distortion=tuple(values['free_distortion']),
         loss=values['robust_loss'], loss_scale=values['robust_loss_scale'],
-        gate_sigmas=values['outlier_gate_sigmas']).validate())
+        gate_sigmas=values['outlier_gate_sigmas'], intrinsics=given).validate())
+
+
+def given_intrinsics(values) -> Dict[str, IntrinsicsPrior]:
+    """
+    Read the given intrinsics: camera name -> IntrinsicsPrior for modes fixed and prior.
+
+    The files are camera_info YAMLs; only K, D and the image size are taken from them (the
+    camera name in a file is the driver's business).  ValueError names the parameter and file.
+    """
+    cams, modes = values['camera_names'], values['intrinsics_mode']
+    modes = modes * len(cams) if len(modes) == 1 else modes
+    out = {}
+    for k, (cam, mode) in enumerate(zip(cams, modes)):
+        if mode == 'estimate':
+            continue
+        path = values['intrinsics_files'][k]
+        try:
+            with open(path, encoding='utf-8') as f:
+                doc = yaml.safe_load(f)
+            if isinstance(doc, dict):
+                doc = dict(doc, camera_name=cam)
+            info = camera_from_info_dict(doc, source=path)
+        except (OSError, yaml.YAMLError, ValueError) as exc:
+            raise ValueError(f'parameter intrinsics_files: camera {cam}: {exc}') from exc
+        sigma = sigma_dist = None
+        if mode == 'prior':
+            sigma = (values['intrinsics_sigma_px'],) * 4
+            if values['intrinsics_sigma_dist'] > 0:
+                sigma_dist = (values['intrinsics_sigma_dist'],) * 5
+        out[cam] = IntrinsicsPrior.from_camera(info, sigma, sigma_dist)
+    return out
 
 
 def _named(build):

@@ -19,7 +19,7 @@ from rosbags.highlevel import AnyReader
 
 from armcal_ros.compare import compare
 from armcal_ros.io.bag import BagWriter, iter_raw, jazzy_typestore
-from armcal_ros.io.calib_files import read_cameras
+from armcal_ros.io.calib_files import read_camera_info, read_cameras, write_camera_info
 from armcal_ros.offline import calibrate_bag, CalibrateError
 from armcal_ros.settings import load_settings
 from armcal_ros.sim.cell import simulate_cell
@@ -151,3 +151,45 @@ def test_bag_is_real_rosbag2(sim_bag):
         topics = {c.topic for c in reader.connections}
     assert {'/joint_states', '/cam1/image_raw'} <= topics
     assert np.load(bag / 'ground_truth' / 'markers.npz')['dwell_true'].shape[0] >= 20
+
+
+def test_given_intrinsics_are_kept_and_only_poses_estimated(sim_bag, tmp_path):
+    # The simulator's true camera_info files stand for a driver's factory calibration: with
+    # intrinsics_mode fixed they come back unchanged, the poses are estimated; with a prior of
+    # 2 px around values 3 px off, the estimate moves back towards the truth.
+    bag, params = sim_bag
+    gt = bag / 'ground_truth'
+    files = [str(gt / f'{c}.yaml') for c in ('cam1', 'cam2', 'cam3')]
+    fixed = calibrate_bag(bag, load_settings(params, {'intrinsics_mode': ['fixed'],
+                                                      'intrinsics_files': files,
+                                                      'noise_model': 'correlated'}),
+                          tmp_path / 'fixed')
+    _, truth = read_cameras(str(gt))
+    for t in truth:
+        c = fixed.report['cameras'][t.name]
+        np.testing.assert_allclose([c['fx'], c['fy'], c['cx'], c['cy']], t.intrinsics(),
+                                   atol=1e-3)
+        np.testing.assert_allclose(c['dist'], t.dist, atol=1e-8)
+        assert c['std']['fx'] < 1e-3
+    score = _check_against_truth(tmp_path / 'fixed', gt)
+    for name in ('cam1', 'cam2', 'cam3'):
+        assert score.per_camera[name]['centre_mm'] < 10.0, score.per_camera[name]
+    # A prior of 2 px around intrinsics 3 px off: the estimate stays within the prior's reach
+    # of the given values (35 points inform fx less than 2 px do) and no reported standard
+    # deviation exceeds the prior's (the posterior is never wider than the prior).
+    off = tmp_path / 'off'
+    off.mkdir()
+    for t in truth:
+        cam = read_camera_info(str(gt / f'{t.name}.yaml'))
+        cam.set_intrinsics(cam.intrinsics() + 3.0)
+        write_camera_info(str(off / f'{t.name}.yaml'), cam)
+    prior = calibrate_bag(bag, load_settings(params, {
+        'intrinsics_mode': ['prior'], 'intrinsics_sigma_px': 2.0, 'noise_model': 'correlated',
+        'intrinsics_files': [str(off / f'{c}.yaml') for c in ('cam1', 'cam2', 'cam3')]}),
+        tmp_path / 'prior')
+    for t in truth:
+        c = prior.report['cameras'][t.name]
+        est = np.array([c['fx'], c['fy'], c['cx'], c['cy']])
+        assert np.all(np.abs(est - (t.intrinsics() + 3.0)) < 4.0), (t.name, est)
+        assert max(c['std'][k] for k in ('fx', 'fy', 'cx', 'cy')) <= 2.0, c['std']
+        assert c['dist'] == pytest.approx(list(t.dist), abs=1e-8)   # sigma_dist 0: held

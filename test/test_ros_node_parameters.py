@@ -59,6 +59,10 @@ def test_descriptors_declare_types_ranges_and_read_only(ros_context, tmp_path):
     (dict(marker_link='no_such_link'), ['marker_link', 'no_such_link']),
     (dict(pixel_sigma=1), ['pixel_sigma', 'double']),
     (dict(pose_topic='/flange_pose', noise_model='kinematic'), ['noise_model', 'pose_topic']),
+    (dict(intrinsics_mode=['prior'], intrinsics_files=['a.yaml'] * 3),
+     ['intrinsics_mode', 'intrinsics_sigma_px']),
+    (dict(intrinsics_mode=['fixed'], intrinsics_files=['/nope.yaml'] * 3),
+     ['intrinsics_files', 'camera cam1', '/nope.yaml']),
 ])
 def test_bad_parameters_refuse_the_start(ros_context, tmp_path, extra, words):
     from armcal_ros.ros.node import CalibratorNode, ParameterError
@@ -119,6 +123,28 @@ def test_static_tf_through_tf2_ros_when_importable(ros_context, tmp_path, monkey
         assert [(t.header.frame_id, t.child_frame_id) for t in sent] == \
             [('base_link', 'cam1_optical_frame')]
         assert sent[0].transform.translation.x == pytest.approx(camera().center[0])
+    finally:
+        node.close(solve_timeout=1.0)
+        node.destroy_node()
+
+
+def test_given_intrinsics_reach_the_engine(ros_context, tmp_path):
+    from armcal_ros.core.camera import Camera
+    from armcal_ros.io.calib_files import write_camera_info
+    from armcal_ros.ros.node import CalibratorNode
+    files = []
+    for k in range(3):
+        f = tmp_path / f'cam{k + 1}.yaml'
+        write_camera_info(str(f), Camera(f'cam{k + 1}', 640, 480, 800.0 + k, 800.0, 320, 240))
+        files.append(str(f))
+    node = CalibratorNode(context=ros_context, parameter_overrides=_overrides(
+        tmp_path, intrinsics_mode=['fixed', 'estimate', 'prior'], intrinsics_files=files,
+        intrinsics_sigma_px=2.0))
+    try:
+        given = node.engine.settings.solver.intrinsics
+        assert sorted(given) == ['cam1', 'cam3']
+        assert given['cam1'].mode == 'fixed' and given['cam3'].sigma == (2.0,) * 4
+        assert given['cam3'].intrinsics[0] == 802.0
     finally:
         node.close(solve_timeout=1.0)
         node.destroy_node()

@@ -91,3 +91,44 @@ def test_load_settings_applies_overrides_before_the_checks(tmp_path):
     assert load_settings(str(p), {'noise_model': 'hybrid'}).prior.model == 'hybrid'
     with pytest.raises(ValueError, match='noise_model'):
         load_settings(str(p), {'noise_model': 'nope'})
+
+
+def test_given_intrinsics_from_camera_info_files(tmp_path):
+    # As camera_calibration writes it, with its default name (a '/' in it).
+    (tmp_path / 'left.yaml').write_text(
+        'image_width: 640\nimage_height: 480\ncamera_name: narrow_stereo/left\n'
+        'camera_matrix: {rows: 3, cols: 3, data: [612.0, 0, 318.0, 0, 611.0, 242.0, 0, 0, 1]}\n'
+        'distortion_model: plumb_bob\n'
+        'distortion_coefficients: {rows: 1, cols: 5, data: [0.01, -0.02, 0, 0, 0]}\n')
+    p = tmp_path / 'p.yaml'
+    p.write_text('armcal:\n  ros__parameters:\n'
+                 f'    robot_description_file: {PUMA_URDF}\n'
+                 '    camera_names: [l, r]\n    image_topics: [/l, /r]\n'
+                 '    intrinsics_mode: [fixed, estimate]\n'
+                 '    intrinsics_files: [left.yaml, ""]\n')
+    s = load_settings(str(p))       # the relative file name is found beside p.yaml
+    given = s.solver.intrinsics
+    assert list(given) == ['l'] and given['l'].mode == 'fixed'
+    assert tuple(given['l'].intrinsics) == (612.0, 611.0, 318.0, 242.0)
+    assert (given['l'].width, given['l'].height) == (640, 480)
+    prior = load_settings(str(p), {'intrinsics_mode': ['prior'], 'intrinsics_sigma_px': 3.0,
+                                   'intrinsics_files': ['left.yaml', 'left.yaml']})
+    assert prior.solver.intrinsics['r'].sigma == (3.0,) * 4
+    assert prior.solver.intrinsics['r'].sigma_dist is None
+
+
+@pytest.mark.parametrize('change, why', [
+    ({'intrinsics_mode': ['fixed', 'fixed', 'fixed']}, 'empty, one mode, or one per camera'),
+    ({'intrinsics_mode': ['fixed'], 'intrinsics_files': []}, 'needs one entry per camera'),
+    ({'intrinsics_mode': ['estimate', 'fixed'], 'intrinsics_files': ['a.yaml', '']},
+     r"no file for cameras \['r'\]"),
+    ({'intrinsics_mode': ['prior'], 'intrinsics_files': ['a.yaml', 'a.yaml']},
+     'needs intrinsics_sigma_px > 0'),
+    ({'intrinsics_mode': ['focus']}, 'unknown modes'),
+    ({'intrinsics_mode': ['fixed'], 'intrinsics_files': ['/nope.yaml', '/nope.yaml']},
+     'intrinsics_files: camera l'),
+])
+def test_given_intrinsics_are_refused_with_the_reason(change, why):
+    with pytest.raises(ValueError, match=why):
+        settings_from_values(_values(camera_names=['l', 'r'], image_topics=['/l', '/r'],
+                                     **change))

@@ -51,6 +51,7 @@ from scipy.linalg import cho_factor, cho_solve, LinAlgError
 from armcal_ros.core.camera import (Camera, DISTORTION_NAMES, INTRINSIC_NAMES,
                                     project_with_jacobians)
 from armcal_ros.core.geometry import skew
+from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
 from armcal_ros.core.kernels import kernel_matrix
 from armcal_ros.core.priors import PointPrior, PriorSettings
 from armcal_ros.core.robust import check_loss, rho, weights
@@ -100,6 +101,8 @@ class SolverSettings:
 
     pixel_sigma: image noise s_px (px).  free_distortion: which plumb_bob terms are estimated.
     loss / loss_scale: robust loss and its scale (px).  gate_sigmas / gate_min_px: outlier gate.
+    intrinsics: camera name -> :class:`~armcal_ros.core.intrinsics_prior.IntrinsicsPrior`, the
+    cameras whose intrinsics are given (held fixed or under a prior); the others are estimated.
     """
 
     pixel_sigma: float = 0.5
@@ -114,6 +117,7 @@ class SolverSettings:
     xtol: float = 1e-8
     gtol: float = 1e-10
     initial_lambda: float = 1e-3
+    intrinsics: Dict[str, IntrinsicsPrior] = field(default_factory=dict)
 
     def validate(self):
         """Raise ValueError naming the first bad setting; return self."""
@@ -128,6 +132,9 @@ class SolverSettings:
             raise ValueError(f'gate_sigmas must be > 0, got {self.gate_sigmas}')
         if self.max_iterations < 1:
             raise ValueError(f'max_iterations must be >= 1, got {self.max_iterations}')
+        bad = [k for k, v in self.intrinsics.items() if not isinstance(v, IntrinsicsPrior)]
+        if bad:
+            raise ValueError(f'intrinsics of {bad} must be IntrinsicsPrior objects')
         return self
 
 
@@ -230,6 +237,10 @@ class _Layout:
         """Stack d_intr, free d_dist and d_pose into (M, 2, per_camera)."""
         return np.concatenate([J.d_intr, J.d_dist[:, :, self.dist_idx], J.d_pose], axis=2)
 
+    def intrinsic_vector(self, cam: Camera):
+        """Return (fx, fy, cx, cy, free distortion terms): the head of a camera's block."""
+        return np.concatenate([cam.intrinsics(), cam.dist[self.dist_idx]])
+
 
 def _apply_camera_step(cam: Camera, step, layout: _Layout):
     new = cam.copy()
@@ -262,6 +273,9 @@ class _Problem:
         if prior.kind == 'dense':
             self.P_dense = np.kron(prior.scalar_precision(), np.eye(3))
         self.n_global = prior.n_global if prior.kind == 'global' else 0
+        # Given intrinsics (fixed or under a prior): (mean, 1 / sigma^2) per camera, or None.
+        self.intrinsic_terms = [settings.intrinsics[c.name].terms(self.layout.dist_idx)
+                                if c.name in settings.intrinsics else None for c in cameras]
         if self.n_global:
             p = prior.precision
             # H_gg = sum_i p_i A_i^T A_i + I does not depend on the state (A is fixed).
@@ -285,6 +299,9 @@ class _Problem:
             total += self.prior.global_cost(X, g)
         elif self.optimise_points:
             total += self.prior.cost(X)
+        for c, t in zip(cams, self.intrinsic_terms):
+            if t is not None:
+                total += float(np.sum(t[1] * (self.layout.intrinsic_vector(c) - t[0]) ** 2))
         return total
 
     def normal_equations(self, cams, X, g=None):
@@ -327,6 +344,11 @@ class _Problem:
                     np.add.at(W, (sl, pts), blocks.transpose(1, 0, 2))
                     np.add.at(Vb, pts, vb)
                     np.add.at(g_x, pts, gx)
+        for j, t in enumerate(self.intrinsic_terms):
+            if t is not None:
+                k = np.arange(j * pc, j * pc + len(t[0]))
+                U[k, k] += t[1]
+                g_c[k] += t[1] * (lay.intrinsic_vector(cams[j]) - t[0])
         g_g = np.zeros(self.n_global)
         if self.prior.kind == 'global':
             p = self.prior.precision

@@ -271,6 +271,10 @@ def calibrate_board(specs: Sequence[CameraSpec], data: BoardData, prior: PriorSe
         raise ValueError('T_link_target is needed when the mount is not estimated '
                          '(estimate_marker_offset false)')
     initial = dict(initial or {})
+    if intrinsics is None and settings.intrinsics:
+        # Given intrinsics (SolverSettings.intrinsics) also give the view poses by PnP.
+        intrinsics = {k: (p.K(), np.asarray(p.dist, float))
+                      for k, p in settings.intrinsics.items()}
     cams_init, hes, init = initialise_board_cameras(specs, data, settings.free_distortion,
                                                     intrinsics)
     for name, cam in cams_init.items():

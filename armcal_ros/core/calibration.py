@@ -1,10 +1,11 @@
 """
 The whole estimator: initialise every camera, adjust with ``fixed``, then with the chosen model.
 
-The sequence: DLT + RANSAC per camera (no hand-given guess), a ``fixed``-model adjustment
-(points held at the robot's measurements) to bring in distortion, then the chosen noise model
-warm-started from it.  Cameras that cannot be initialised (too few or degenerate points) are
-reported and left out; the others are still calibrated.
+The sequence: DLT + RANSAC per camera (no hand-given guess; PnP for a camera whose intrinsics are
+given in ``SolverSettings.intrinsics``), a ``fixed``-model adjustment (points held at the robot's
+measurements) to bring in distortion, then the chosen noise model warm-started from it.  Cameras
+that cannot be initialised (too few or degenerate points) are reported and left out; the others
+are still calibrated.
 """
 
 import time
@@ -16,7 +17,8 @@ import numpy as np
 from armcal_ros.core.adjustment import (AdjustmentResult, Observations, SolverSettings,
                                         adjust)
 from armcal_ros.core.camera import Camera
-from armcal_ros.core.initialisation import initialise_camera, InitResult
+from armcal_ros.core.initialisation import (initialise_camera, initialise_with_intrinsics,
+                                            InitResult)
 from armcal_ros.core.model_selection import ModelSelection, select_model
 from armcal_ros.core.priors import KINEMATIC_MODELS, PriorSettings
 
@@ -95,10 +97,24 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
     keep: List[int] = []
     for j, spec in enumerate(specs):
         sel = obs.camera == j
+        given = settings.intrinsics.get(spec.name)
         if spec.name in initial:
             cam = initial[spec.name].copy()
+            if given is not None and given.mode == 'fixed':
+                cam = given.apply(cam)
             init[spec.name] = InitResult(True, 'warm_start', f'camera {spec.name}: warm start',
                                          cam)
+        elif given is not None and given.size_mismatch(spec.width, spec.height):
+            init[spec.name] = InitResult(False, 'size_mismatch', f'camera {spec.name}: '
+                                         + given.size_mismatch(spec.width, spec.height))
+            continue
+        elif given is not None:
+            res = initialise_with_intrinsics(spec.name, spec.width, spec.height,
+                                             measured[obs.point[sel]], obs.uv[sel], given)
+            init[spec.name] = res
+            if not res.success:
+                continue
+            cam = res.camera
         else:
             res = initialise_camera(spec.name, spec.width, spec.height,
                                     measured[obs.point[sel]], obs.uv[sel], rng=rng)

@@ -10,17 +10,25 @@ generous (a fraction of the image diagonal) and the bundle adjustment does the r
 Degenerate data are refused with a reason rather than turned into garbage: too few points, points
 nearly coplanar or collinear (the DLT of a plane is rank-deficient: a homography, not a camera),
 too few RANSAC inliers, or a decomposition whose points fall behind the camera.
+
+A camera whose intrinsics are given (:class:`~armcal_ros.core.intrinsics_prior.IntrinsicsPrior`)
+needs only its pose: :func:`initialise_with_intrinsics` solves the perspective-n-point problem
+(EPnP inside RANSAC, then Levenberg-Marquardt on the inliers, ``cv2.solvePnPRansac``), which
+works from six points, coplanar ones included, where the eleven-parameter DLT is ill-posed.
 """
 
 from dataclasses import dataclass
 from typing import Optional
 
+import cv2
 import numpy as np
 from scipy.linalg import rq
 
 from armcal_ros.core.camera import Camera
+from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
 
 MIN_POINTS = 8
+MIN_POINTS_PNP = 6
 
 
 @dataclass
@@ -180,3 +188,49 @@ def initialise_camera(name, width, height, X, uv, rng=None, inlier_px=None,
     rms = float(np.sqrt(np.mean(np.sum((cam.project(X[inl]) - uv[inl]) ** 2, axis=1))))
     return InitResult(True, 'ok', f'camera {name}: DLT on {int(inl.sum())} of {n} points, '
                       f'{rms:.2f} px rms', cam, inl, rms)
+
+
+def initialise_with_intrinsics(name, width, height, X, uv, given: IntrinsicsPrior,
+                               inlier_px=None, min_points=MIN_POINTS_PNP,
+                               min_inlier_ratio=0.5) -> InitResult:
+    """
+    Estimate one camera's pose from X (N, 3) and uv (N, 2) with its intrinsics given.
+
+    ``inlier_px`` defaults to 2 % of the image diagonal: the lens model is known, so only the
+    robot's bias and mis-detections remain (a few pixels at most for the one, far more for
+    the other).
+    """
+    X = np.asarray(X, float)
+    uv = np.asarray(uv, float)
+    if X.ndim != 2 or X.shape[1] != 3 or uv.shape != (X.shape[0], 2):
+        raise ValueError(f'X must be (N, 3) and uv (N, 2); got {X.shape} and {uv.shape}')
+    n = len(X)
+    if n < min_points:
+        return InitResult(False, 'insufficient_points',
+                          f'camera {name}: {n} points, at least {min_points} needed with '
+                          'given intrinsics')
+    if inlier_px is None:
+        inlier_px = 0.02 * float(np.hypot(width, height))
+    K, dist = given.K(), np.asarray(given.dist, float)
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(
+        X.reshape(-1, 1, 3), uv.reshape(-1, 1, 2), K, dist, iterationsCount=500,
+        reprojectionError=float(inlier_px), confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+    count = 0 if inl is None else len(inl)
+    if not ok or count < max(min_points, int(min_inlier_ratio * n)):
+        return InitResult(False, 'init_failed',
+                          f'camera {name}: PnP with the given intrinsics found {count} of {n} '
+                          f'points consistent within {inlier_px:.1f} px')
+    mask = np.zeros(n, bool)
+    mask[np.asarray(inl).reshape(-1)] = True
+    rvec, tvec = cv2.solvePnPRefineLM(X[mask].reshape(-1, 1, 3), uv[mask].reshape(-1, 1, 2),
+                                      K, dist, rvec, tvec)
+    R = cv2.Rodrigues(rvec)[0]
+    t = np.asarray(tvec, float).reshape(3)
+    if np.mean(X[mask] @ R[2] + t[2] > 0) < 0.5:
+        return InitResult(False, 'init_failed',
+                          f'camera {name}: PnP put the points behind the camera')
+    fx, fy, cx, cy = (float(v) for v in given.intrinsics)
+    cam = Camera(name, width, height, fx, fy, cx, cy, dist.copy(), R, t)
+    rms = float(np.sqrt(np.mean(np.sum((cam.project(X[mask]) - uv[mask]) ** 2, axis=1))))
+    return InitResult(True, 'ok', f'camera {name}: PnP with the given intrinsics on '
+                      f'{int(mask.sum())} of {n} points, {rms:.2f} px rms', cam, mask, rms)

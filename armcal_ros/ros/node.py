@@ -58,7 +58,7 @@ from visualization_msgs.msg import MarkerArray
 
 from armcal_ros.compose import build_pipeline, engine_settings
 from armcal_ros.io.message_fields import pose_from_msg, stamp_ns
-from armcal_ros.params import BY_NAME, check_value, NODE_NAME, PARAMS
+from armcal_ros.params import BY_NAME, check_value, NODE_NAME, PARAMS, resolve_paths
 from armcal_ros.ros import conversions as conv
 from armcal_ros.ros.event_queue import EventQueue
 from armcal_ros.ros.raw_message import LazyMessage
@@ -271,12 +271,8 @@ class CalibratorNode(Node):
                           f'in the README or `ros2 param describe`)')
         if errors:
             raise ParameterError('; '.join(errors))
-        rel = values['robot_description_file']
-        if rel and not os.path.isabs(rel):
-            for d in _params_file_dirs(argv):
-                if os.path.exists(os.path.join(d, rel)):
-                    values['robot_description_file'] = os.path.normpath(os.path.join(d, rel))
-                    break
+        # Relative file names: beside a --params-file that has them, else the working directory.
+        resolve_paths(values, _params_file_dirs(argv) + [os.getcwd()])
         try:
             settings_from_values(values)
         except ValueError as exc:
