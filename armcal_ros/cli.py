@@ -85,11 +85,42 @@ def _run_simulate(args):
     return 0
 
 
+# ---- import-folder ----------------------------------------------------------------------
+
+def _add_import_folder(p):
+    p.add_argument('folder', metavar='DIR', help='a folder of captures: poses.csv (or '
+                   'ee_poses.csv) and images/<prefix><sample>_<camera>.jpg|png (README)')
+    p.add_argument('--output', required=True, metavar='BAG', help='bag directory to create')
+    p.add_argument('--pose-topic', default='/tool_pose', help='topic of the link poses')
+    p.add_argument('--base-frame', default='base_link')
+    p.add_argument('--marker-link', default='tool0', help='the link whose pose the table gives')
+    p.add_argument('--storage', default='mcap', choices=['mcap', 'sqlite3'])
+
+
+def _run_import_folder(args):
+    import os
+
+    from armcal_ros.io.folder_import import read_capture_folder, write_capture_bag
+    if os.path.exists(args.output):
+        raise ValueError(f'--output {args.output} exists already; choose a new bag directory')
+    folder = read_capture_folder(args.folder)
+    params = write_capture_bag(folder, args.output, args.pose_topic, args.base_frame,
+                               args.marker_link, args.storage)
+    arm = 'link poses' if folder.poses is not None else 'joint angles'
+    given = sorted(folder.intrinsics) or 'none'
+    print(f'wrote {args.output}: {len(folder.samples)} captures ({arm}), cameras '
+          f'{folder.cameras}, intrinsics given for {given}; parameters in {params}')
+    return 0
+
+
 #: name -> (help, add_arguments(parser), run(args) -> exit status).
 #: Other subcommands (calibrate, replay, report, demo) register here the same way.
 SUBCOMMANDS = {
     'simulate': ('simulate a calibration cell into a rosbag2 bag with ground truth',
                  _add_simulate, _run_simulate),
+    'import-folder': ('turn a folder of images and poses (or joint angles) per capture into a '
+                      'rosbag2 bag with CameraInfo and a parameter file',
+                      _add_import_folder, _run_import_folder),
     'replay': ('publish a bag\'s messages with their timing (like ros2 bag play) to drive the '
                'node', _add_replay, _run_replay),
     'calibrate': ('calibrate the cameras from a recorded rosbag2 bag (no ROS middleware needed)',

@@ -91,6 +91,16 @@ def build_detectors(settings: Settings, camera_names, board: Optional[CharucoBoa
     return out
 
 
+def min_frames_per_dwell(settings: Settings) -> int:
+    """
+    Return the frames a camera needs in a dwell for an observation of the marker.
+
+    Decoded targets (ChArUco corners, an ArUco tag's id) are trustworthy in one frame; a
+    sphere is a bright blob that a glint can imitate in one frame, so it needs two.
+    """
+    return 2 if settings.target.marker_type == 'sphere' else 1
+
+
 def engine_settings(settings: Settings, board: Optional[BoardTarget] = None) -> EngineSettings:
     """Return the engine's settings (also used when the node's parameters change at runtime)."""
     s = settings.schedule
@@ -144,5 +154,6 @@ def build_pipeline(settings: Settings, log: Optional[Callable[[str], None]] = No
     fe, det = settings.front_end, settings.detector
     collector = SampleCollector(chain, settings.robot.marker_offset, names, detectors,
                                 fe.max_marker_speed, fe.dwell_radius, log=log, board=target,
-                                max_views_per_dwell=det.max_views_per_dwell)
+                                max_views_per_dwell=det.max_views_per_dwell,
+                                min_frames=min_frames_per_dwell(settings))
     return Pipeline(chain, board, collector, build_engine(settings, chain, target))

@@ -28,6 +28,7 @@ from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.frontend.store import SampleStore
 from armcal_ros.io.bag import bag_topics, DeserializationError, iter_raw
 from armcal_ros.io.calib_files import atomic_write_text
+from armcal_ros.io.folder_import import capture_stamp, POSE_MARGIN_NS
 from armcal_ros.io.message_fields import pose_from_msg, stamp_ns
 from armcal_ros.io.rct_import import is_rct_folder, load_rct_folder, RctFormatError
 from armcal_ros.robot.kinematics import KinematicChain
@@ -36,10 +37,6 @@ from armcal_ros.settings import load_settings, Settings
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 POSE_TYPES = ('geometry_msgs/msg/PoseStamped', 'geometry_msgs/msg/TransformStamped')
 IMAGE_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage')
-#: A robot_cal_tools folder is replayed as one still view per second, each view's link pose
-#: given 20 ms before and after its image (inside the pose history's 0.1 s gap limit).
-FOLDER_VIEW_PERIOD_NS = 1_000_000_000
-FOLDER_POSE_MARGIN_NS = 20_000_000
 
 
 class CalibrateError(RuntimeError):
@@ -153,9 +150,10 @@ def open_folder(path, settings: Settings) -> Recording:
     """
     Return a robot_cal_tools folder as a :class:`Recording` of still views.
 
-    The folder has one camera: its images are the first of ``camera_names``.  View k is the
-    image at k seconds with its link pose given just before and after it, so the front end
-    pairs it as a still frame and pools it as a dwell of its own.
+    The folder has one camera: its images are the first of ``camera_names``.  View k is
+    replayed as a capture folder's (:func:`~armcal_ros.io.folder_import.capture_stamp`): the
+    image with its link pose given just before and after it, so the front end pairs it as a
+    still frame and pools it as a dwell of its own.
     """
     try:
         data = load_rct_folder(path)
@@ -170,9 +168,9 @@ def open_folder(path, settings: Settings) -> Recording:
 
     def events():
         for k, (image, T) in enumerate(zip(data.image_paths, data.poses)):
-            t = (k + 1) * FOLDER_VIEW_PERIOD_NS
+            t = capture_stamp(k)
             x = pose_vector(T)
-            yield ('pose', t - FOLDER_POSE_MARGIN_NS, x[:3], x[3:])
+            yield ('pose', t - POSE_MARGIN_NS, x[:3], x[3:])
             try:
                 with open(image, 'rb') as f:
                     msg = EncodedImage(os.path.splitext(image)[1].lstrip('.').lower(),
@@ -181,7 +179,7 @@ def open_folder(path, settings: Settings) -> Recording:
                 yield ('corrupt', f'{image}: {exc}')
             else:
                 yield ('image', camera, t, msg)
-            yield ('pose', t + FOLDER_POSE_MARGIN_NS, x[:3], x[3:])
+            yield ('pose', t + POSE_MARGIN_NS, x[:3], x[3:])
     info = dict(kind='robot_cal_tools folder', path=os.path.abspath(path),
                 images=len(data.image_paths), arm='link poses of the folder')
     return Recording(events, 3 * len(data.image_paths), info, warnings,

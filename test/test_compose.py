@@ -67,3 +67,10 @@ def test_engine_settings_follow_the_settings():
     e = engine_settings(s)
     assert (e.min_samples, e.solve_period_s, e.prior.model) == (9, 3.0, 'independent')
     assert e.camera_names == ['cam1', 'cam2', 'cam3'] and e.marker_link == 'marker'
+
+
+def test_decoded_targets_need_one_frame_a_sphere_two():
+    assert build_pipeline(_settings()).collector.pooler.min_frames == 2
+    assert build_pipeline(_settings(marker_type='aruco')).collector.pooler.min_frames == 1
+    pipe = build_pipeline(_settings(estimate_marker_offset=True, **BOARD))
+    assert pipe.collector.pooler.min_frames == 1

@@ -67,7 +67,12 @@ class SampleCollector:
     still frame for it (tens of ms each) would fall behind three live cameras.  Later still
     frames of that camera in the same dwell are counted in ``frames_skipped_dwell_full`` and
     not decoded.  A sphere or a tag is not capped: detecting one costs about a millisecond,
-    and its pooling needs several frames (at least two, the median to reject a glint).
+    and its pooling wants several frames.
+
+    ``min_frames`` is how many frames of a camera a dwell needs for an observation (None: 1
+    for a board, 2 otherwise).  A board's corners come from its markers' decoded ids and a
+    local homography fit, and a tag's from its decoded id: one frame is trustworthy.  A glint
+    can pass as a sphere in one frame, so a sphere needs two (the median then rejects it).
 
     ``counts`` holds how many inputs ended where (``joint_states`` or ``poses``, ``frames``,
     ``frames_still``, ``detections``, ``frames_skipped_dwell_full`` and every rejection
@@ -77,7 +82,7 @@ class SampleCollector:
 
     def __init__(self, chain: Optional[KinematicChain], marker_offset, camera_names, detectors,
                  max_marker_speed=0.0375, dwell_radius=0.001, log=None,
-                 board: Optional[BoardTarget] = None, max_pose_gap_s=0.1,
+                 board: Optional[BoardTarget] = None, max_pose_gap_s=0.1, min_frames=None,
                  max_views_per_dwell=3):
         self.chain = chain
         self.pose_input = chain is None
@@ -110,14 +115,14 @@ class SampleCollector:
                     return np.einsum('mij,rj->mri', T[:, :3, :3], ref) + T[:, None, :3, 3]
             self.pairer = FramePairer(chain.joint_names, fk, max_marker_speed=max_marker_speed)
             mean = None
-        # A board's corners come from its markers' ids and a local homography fit: one frame
-        # is trustworthy; a glint can pass as a sphere, so a sphere needs two.
+        if min_frames is None:
+            min_frames = 1 if board is not None else 2
         if isinstance(max_views_per_dwell, bool) or not isinstance(max_views_per_dwell, int) \
                 or max_views_per_dwell < 0:
             raise ValueError('max_views_per_dwell must be an integer >= 0 (0: no cap), got '
                              f'{max_views_per_dwell!r}')
         self.pooler = DwellPooler(fk, dwell_radius=dwell_radius,
-                                  min_frames=1 if board is not None else 2, mean_config=mean,
+                                  min_frames=min_frames, mean_config=mean,
                                   max_views=max_views_per_dwell if board is not None else 0)
         self.counts = collections.Counter()
         self.image_sizes: Dict[str, tuple] = {}

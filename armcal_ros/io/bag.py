@@ -29,10 +29,14 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.typesys import get_typestore, Stores
+from scipy.spatial.transform import Rotation
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 IMAGE = 'sensor_msgs/msg/Image'
 COMPRESSED_IMAGE = 'sensor_msgs/msg/CompressedImage'
+CAMERA_INFO = 'sensor_msgs/msg/CameraInfo'
+POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+TRANSFORM_STAMPED = 'geometry_msgs/msg/TransformStamped'
 
 IMAGE_ENCODINGS = ('mono8', 'rgb8', 'bgr8')
 COMPRESSED_FORMATS = ('png', 'jpeg')
@@ -188,6 +192,53 @@ class BagWriter:
                                  encoding=encoding, is_bigendian=0, step=w * channels,
                                  data=image.reshape(-1))
         self.write_message(topic, IMAGE, stamp_ns if log_ns is None else log_ns, msg)
+
+    def write_pose(self, topic, msgtype, stamp_ns, T, frame_id, child_frame_id='',
+                   log_ns=None):
+        """
+        Write a 4x4 pose as geometry_msgs/PoseStamped or TransformStamped (``msgtype``).
+
+        ``frame_id`` is the parent frame; ``child_frame_id`` the moving one (TransformStamped).
+        """
+        types = self._types
+        T = np.asarray(T, float)
+        t = T[:3, 3]
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()
+        quat = types['geometry_msgs/msg/Quaternion'](x=q[0], y=q[1], z=q[2], w=q[3])
+        header = self.header(stamp_ns, frame_id)
+        if msgtype == POSE_STAMPED:
+            msg = types[msgtype](header=header, pose=types['geometry_msgs/msg/Pose'](
+                position=types['geometry_msgs/msg/Point'](x=t[0], y=t[1], z=t[2]),
+                orientation=quat))
+        elif msgtype == TRANSFORM_STAMPED:
+            msg = types[msgtype](header=header, child_frame_id=child_frame_id,
+                                 transform=types['geometry_msgs/msg/Transform'](
+                                     translation=types['geometry_msgs/msg/Vector3'](
+                                         x=t[0], y=t[1], z=t[2]), rotation=quat))
+        else:
+            raise ValueError(f'msgtype must be {POSE_STAMPED} or {TRANSFORM_STAMPED}, '
+                             f'got {msgtype!r}')
+        self.write_message(topic, msgtype, stamp_ns if log_ns is None else log_ns, msg)
+
+    def write_encoded_image(self, topic, stamp_ns, data, fmt, frame_id='', log_ns=None):
+        """Write already encoded bytes (a JPEG or PNG file's) as a sensor_msgs/CompressedImage."""
+        msg = self._types[COMPRESSED_IMAGE](header=self.header(stamp_ns, frame_id), format=fmt,
+                                            data=np.frombuffer(bytes(data), np.uint8))
+        self.write_message(topic, COMPRESSED_IMAGE, stamp_ns if log_ns is None else log_ns, msg)
+
+    def write_camera_info(self, topic, stamp_ns, K, dist, width, height, frame_id='',
+                          log_ns=None):
+        """Write a monocular plumb_bob sensor_msgs/CameraInfo (R = I, P = [K | 0])."""
+        types = self._types
+        K = np.asarray(K, float).reshape(3, 3)
+        P = np.hstack([K, np.zeros((3, 1))])
+        msg = types[CAMERA_INFO](
+            header=self.header(stamp_ns, frame_id), height=int(height), width=int(width),
+            distortion_model='plumb_bob', d=np.asarray(dist, float).reshape(-1),
+            k=K.reshape(-1), r=np.eye(3).reshape(-1), p=P.reshape(-1), binning_x=0,
+            binning_y=0, roi=types['sensor_msgs/msg/RegionOfInterest'](
+                x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+        self.write_message(topic, CAMERA_INFO, stamp_ns if log_ns is None else log_ns, msg)
 
     def write_compressed_image(self, topic, stamp_ns, image, fmt='png', encoding='mono8',
                                frame_id='', log_ns=None, jpeg_quality=90):

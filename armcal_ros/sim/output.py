@@ -30,13 +30,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from scipy.spatial.transform import Rotation
-
-from armcal_ros.io.bag import BagWriter, COMPRESSED_FORMATS, IMAGE_ENCODINGS
+from armcal_ros.io.bag import (BagWriter, COMPRESSED_FORMATS, IMAGE_ENCODINGS, POSE_STAMPED,
+                               TRANSFORM_STAMPED)
 from armcal_ros.io.calib_files import atomic_write_text, write_cameras
 
-POSE_MSG_TYPES = {'pose_stamped': 'geometry_msgs/msg/PoseStamped',
-                  'transform_stamped': 'geometry_msgs/msg/TransformStamped'}
+POSE_MSG_TYPES = {'pose_stamped': POSE_STAMPED, 'transform_stamped': TRANSFORM_STAMPED}
 
 
 def image_topic(camera_name, compressed=None):
@@ -89,20 +87,6 @@ def link_poses(result):
     return chain.fk_pose(q)
 
 
-def _pose_message(types, msgtype, header, T, child_frame):
-    t = T[:3, 3]
-    q = Rotation.from_matrix(T[:3, :3]).as_quat()
-    quat = types['geometry_msgs/msg/Quaternion'](x=q[0], y=q[1], z=q[2], w=q[3])
-    if msgtype == POSE_MSG_TYPES['pose_stamped']:
-        return types[msgtype](header=header, pose=types['geometry_msgs/msg/Pose'](
-            position=types['geometry_msgs/msg/Point'](x=t[0], y=t[1], z=t[2]),
-            orientation=quat))
-    return types[msgtype](header=header, child_frame_id=child_frame,
-                          transform=types['geometry_msgs/msg/Transform'](
-                              translation=types['geometry_msgs/msg/Vector3'](
-                                  x=t[0], y=t[1], z=t[2]), rotation=quat))
-
-
 def write_sim_bag(result, path, storage='mcap', compressed=None, encoding='mono8',
                   compress=True, ground_truth=True, jpeg_quality=90, progress=None,
                   pose_topic=None, pose_type='pose_stamped'):
@@ -148,10 +132,8 @@ def write_sim_bag(result, path, storage='mcap', compressed=None, encoding='mono8
         for k, o in enumerate(order):
             i = int(index[o])
             if events[o] == 2:
-                header = w.header(int(result.joint_stamps_ns[i]), base)
-                w.write_message(pose_topic, pose_msgtype, int(js_log[i]),
-                                _pose_message(w.typestore.types, pose_msgtype, header,
-                                              poses[i], link))
+                w.write_pose(pose_topic, pose_msgtype, int(result.joint_stamps_ns[i]),
+                             poses[i], base, link, log_ns=int(js_log[i]))
             elif events[o] == 0:
                 w.write_joint_state(js_topic, int(result.joint_stamps_ns[i]), result.joint_names,
                                     result.joint_positions[i], result.joint_velocities[i],

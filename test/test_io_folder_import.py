@@ -1,0 +1,100 @@
+"""
+Folders of captures into bags (``armcal import-folder``), then through ``armcal calibrate``.
+
+The board scene of helpers/board_scene.py written as a capture folder (poses.csv, one PNG per
+capture, the camera's factory intrinsics as camera_info/cam.yaml) must come back from the bag as
+the same calibration problem: with the intrinsics fixed, the camera's intrinsics exactly and its
+pose and the board's mount close to the truth.  The facebookresearch/fairo layout
+(ee_poses.csv, intrinsics.json by RealSense serial) is read from the real data when present.
+"""
+
+import argparse
+import json
+import os
+
+import cv2
+import numpy as np
+import pytest
+
+from armcal_ros.cli import main
+from armcal_ros.core.camera import Camera
+from armcal_ros.core.target import invert, pose_vector
+from armcal_ros.io.bag import bag_topics
+from armcal_ros.io.calib_files import write_camera_info
+from armcal_ros.io.folder_import import (FolderFormatError, read_capture_folder,
+                                         write_capture_bag)
+from armcal_ros.offline import run
+from helpers.board_scene import BOARD_SIZE, check_mount, H, K, link_pose, render, T_CAM_BASE, \
+    view_targets, W
+
+REAL = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..',
+                                     'shared', 'data', 'fairo_franka_3cam', 'caldata_world_cam'))
+
+
+def write_capture_folder(root, n=8):
+    os.makedirs(os.path.join(root, 'images'))
+    os.makedirs(os.path.join(root, 'camera_info'))
+    rows = ['sample,x,y,z,qx,qy,qz,qw']
+    for k, T_ct in enumerate(view_targets(n)):
+        cv2.imwrite(os.path.join(root, 'images', f's{k:02d}_cam.png'), render(T_ct))
+        rows.append(f'{k},' + ','.join(f'{v:.10f}' for v in pose_vector(link_pose(T_ct))))
+    with open(os.path.join(root, 'poses.csv'), 'w') as f:
+        f.write('\n'.join(rows) + '\n')
+    write_camera_info(os.path.join(root, 'camera_info', 'cam.yaml'),
+                      Camera('cam', W, H, K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+
+
+def test_capture_folder_to_bag_to_calibration(tmp_path, capsys):
+    folder = tmp_path / 'captures'
+    write_capture_folder(str(folder))
+    bag = tmp_path / 'bag'
+    assert main(['import-folder', str(folder), '--output', str(bag)]) == 0
+    topics = bag_topics(str(bag))
+    assert topics['/tool_pose'] == ('geometry_msgs/msg/PoseStamped', 16)
+    assert topics['/cam/image_raw/compressed'] == ('sensor_msgs/msg/CompressedImage', 8)
+    assert topics['/cam/camera_info'] == ('sensor_msgs/msg/CameraInfo', 8)
+    # The written parameter file, completed with the marker, calibrates the camera.
+    params = (bag / 'params.yaml').read_text()
+    assert 'intrinsics_mode:\n    - fixed' in params
+    with open(bag / 'params.yaml', 'a') as f:
+        f.write('    marker_type: charuco\n    estimate_marker_offset: true\n'
+                '    noise_model: fixed\n    free_distortion: []\n    min_samples: 3\n' +
+                ''.join(f'    {k}: {v}\n' for k, v in BOARD_SIZE.items()))
+    out = tmp_path / 'out'
+    assert run(argparse.Namespace(bag=str(bag), params=str(bag / 'params.yaml'),
+                                  output=str(out), noise_model=None, quiet=True)) == 0
+    report = json.loads((out / 'report.json').read_text())
+    cam = report['cameras']['cam']
+    assert report['n_samples'] == 8
+    np.testing.assert_allclose([cam['fx'], cam['fy'], cam['cx'], cam['cy']],
+                               [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], atol=1e-3)
+    assert np.linalg.norm(np.array(cam['translation']) - invert(T_CAM_BASE)[:3, 3]) < 3e-3
+    check_mount(report['target']['T_link_target'])
+
+
+def test_joint_angle_tables_and_bad_folders(tmp_path):
+    root = tmp_path / 'joints'
+    (root / 'images').mkdir(parents=True)
+    (root / 'poses.csv').write_text('sample,j1,j2\n0,0.1,0.2\n1,0.3,0.4\n')
+    cv2.imwrite(str(root / 'images' / '0_left.png'), np.zeros((4, 4), np.uint8))
+    cv2.imwrite(str(root / 'images' / '1_left.png'), np.zeros((4, 4), np.uint8))
+    f = read_capture_folder(str(root))
+    assert f.joint_names == ['j1', 'j2'] and f.poses is None and f.cameras == ['left']
+    write_capture_bag(f, str(tmp_path / 'jbag'))
+    assert bag_topics(str(tmp_path / 'jbag'))['/joint_states'][1] == 4
+    (root / 'poses.csv').write_text('sample,j1\n0,abc\n')
+    with pytest.raises(FolderFormatError, match='poses.csv: every cell'):
+        read_capture_folder(str(root))
+    with pytest.raises(FolderFormatError, match='no poses.csv or ee_poses.csv'):
+        read_capture_folder(str(tmp_path))
+
+
+@pytest.mark.skipif(not os.path.isdir(REAL), reason=f'real data {REAL} absent')
+def test_the_fairo_layout_is_read():
+    f = read_capture_folder(REAL)
+    assert len(f.samples) == 20 and f.cameras == ['cam0', 'cam1', 'cam2']
+    assert f.poses.shape == (20, 4, 4)
+    assert sorted(f.intrinsics) == ['cam0', 'cam1', 'cam2']
+    assert abs(f.intrinsics['cam0'].fx - 617.898) < 1e-3
+    assert (f.intrinsics['cam1'].width, f.intrinsics['cam1'].height) == (640, 480)
+    assert all(len(f.images[c]) == 20 for c in f.cameras)
