@@ -59,13 +59,22 @@ def build_board(settings: Settings, data_set_target=None,
     """
     Return (CharucoBoard, BoardTarget) for a charuco target, else (None, None).
 
+    A point marker (sphere, tag centre) with ``estimate_marker_offset`` is a one-point target
+    (None, BoardTarget) seeded at ``marker_offset``: the board path estimates its place.
+
     ``data_set_target`` (rows, cols, square_size, marker_size, dictionary) completes the
     ``charuco_*`` parameters from a data set's own description; ``data_set_guess`` (4, 4) seeds
     the mount when ``target_pose_guess`` is empty.
     """
     target = settings.target
     if not target.is_board:
-        return None, None
+        if not target.estimate_mount:
+            return None, None
+        # A point marker whose place on the link is estimated: a one-point rigid target,
+        # seeded at marker_offset (its orientation is not observable and stays as given).
+        seed = np.eye(4)
+        seed[:3, 3] = settings.robot.marker_offset
+        return None, BoardTarget(np.zeros((1, 3)), seed, True)
     b = target.board.completed(data_set_target)
     board = CharucoBoard(b.rows, b.cols, b.square_size, b.marker_size, b.dictionary, b.legacy)
     guess = optional_pose(target.pose_guess or None)

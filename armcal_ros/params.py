@@ -198,7 +198,9 @@ PARAMS = [
           'targets are never capped (their detection is cheap, their pooling wants many frames)',
           lambda v: None if v >= 0 else 'must be >= 0 (0: no cap)', minimum=0),
     Param('estimate_marker_offset', 'bool', False,
-          'estimate the target\'s pose on marker_link (T_link_target) from the data'),
+          'estimate the target\'s place on marker_link from the data: a board\'s pose '
+          '(T_link_target), or a sphere\'s or tag centre\'s position, seeded at marker_offset '
+          '(a guess centimetres off will do; the views must turn the wrist)'),
     Param('target_pose_guess', 'double[]', [],
           'T_link_target of a board as [x, y, z, qx, qy, qz, qw] (seed when estimated; empty: '
           'found by hand-eye, or the data set\'s own guess)', _pose7),
@@ -304,6 +306,11 @@ def check_all(values: Dict[str, Any], require_robot_model=True):
                          'available with a charuco board (the board solver\'s global '
                          'parameters are the board\'s mount on the link, not the arm\'s '
                          'kinematic errors); use fixed, independent, correlated or auto')
+    if model in KINEMATIC_MODELS and values['estimate_marker_offset']:
+        raise ValueError(f'parameters noise_model and estimate_marker_offset: noise_model '
+                         f'{model} already estimates small marker-mount errors with the arm\'s '
+                         'kinematic errors; estimate_marker_offset (a place centimetres off) '
+                         'works with fixed, independent, correlated or auto')
     modes, files = values['intrinsics_mode'], values['intrinsics_files']
     if len(modes) not in (0, 1, len(cams)):
         raise ValueError(f'parameter intrinsics_mode must be empty, one mode, or one per camera '

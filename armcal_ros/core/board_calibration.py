@@ -25,6 +25,12 @@ Sequence:
 3. Without mount estimation the given T_link_target is held and the chosen model is solved as
    for any point target.
 
+A point marker (a sphere, a tag's centre) whose place on the link is unknown is the one-point
+case: X^_v = T_base_link_v T_link_target 0.  Its views have no pose of their own, so the cameras
+start from the nominal points at the guessed place (DLT, or PnP with given intrinsics) and the
+guess seeds the mount; the mount's rotation is not observable (the prior holds it at the
+guess), its translation - the marker's place - is, once the views turn the wrist.
+
 With ``auto`` the mount comes from the ``fixed`` stage and is then held while the model is chosen.
 """
 
@@ -275,13 +281,22 @@ def calibrate_board(specs: Sequence[CameraSpec], data: BoardData, prior: PriorSe
         # Given intrinsics (SolverSettings.intrinsics) also give the view poses by PnP.
         intrinsics = {k: (p.K(), np.asarray(p.dist, float))
                       for k, p in settings.intrinsics.items()}
-    cams_init, hes, init = initialise_board_cameras(specs, data, settings.free_distortion,
-                                                    intrinsics)
-    for name, cam in cams_init.items():
-        initial.setdefault(name, cam)
-    if not initial:
-        raise ValueError('no camera could be initialised from the board views: ' +
-                         '; '.join(f'{k}: {v}' for k, v in init.method.items()))
+    if len(data.points) == 1:
+        # A point marker: a view has no pose of its own to start from, so the cameras start
+        # from the nominal points at the guessed place (calibrate(): DLT, or PnP with given
+        # intrinsics) and the guess seeds the mount.
+        if T_link_target is None:
+            raise ValueError('a point marker\'s place on the link needs a guess to start from '
+                             '(marker_offset)')
+        hes, init = {}, BoardInit({s.name: 'from the nominal points' for s in specs})
+    else:
+        cams_init, hes, init = initialise_board_cameras(specs, data, settings.free_distortion,
+                                                        intrinsics)
+        for name, cam in cams_init.items():
+            initial.setdefault(name, cam)
+        if not initial:
+            raise ValueError('no camera could be initialised from the board views: ' +
+                             '; '.join(f'{k}: {v}' for k, v in init.method.items()))
     if T_link_target is not None:
         T = np.asarray(T_link_target, float)
         init.mount_seed = 'given'
@@ -324,7 +339,19 @@ def calibrate_board(specs: Sequence[CameraSpec], data: BoardData, prior: PriorSe
     std, rounds, solved = None, 0, prior.model
     if mount.estimate:
         fixed_prior = _mount_prior('fixed', prior, mount)
+        T0 = T
         res, X, T, std, rounds, cams = estimate_mount(fixed_prior, T, initial)
+        if len(data.points) == 1 and np.linalg.norm(T[:3, 3] - T0[:3, 3]) > 1e-3 and \
+                res.adjustment is not None:
+            # The cameras started from points at a guess that proved off: start them again
+            # from the corrected place and keep whichever solution fits better (the stiff
+            # points-on-the-arm problem converges slowly from a poor start).
+            again = estimate_mount(fixed_prior, T, {k: v for k, v in initial.items()})
+            if again[0].adjustment is not None and again[0].adjustment.cost < \
+                    res.adjustment.cost:
+                stages.append('point marker: cameras restarted at the corrected place')
+                res, X, T, std, r2, cams = again
+                rounds += r2
         if prior.model in ('independent', 'correlated'):
             res, X, T, std, r2, cams = estimate_mount(_mount_prior(prior.model, prior, mount),
                                                       T, cams)

@@ -19,6 +19,7 @@ board's outer corners, so a turn of the board about its centre is not taken for 
 
 import collections
 import time
+from dataclasses import replace
 from typing import Callable, Dict, List, Optional
 
 import numpy as np
@@ -234,6 +235,9 @@ class SampleCollector:
         h, w = image.shape[:2]
         self.image_sizes[camera] = (w, h)
         dets = self.detectors[camera].detect(image)
+        if self.board is not None and len(self.board.points) == 1:
+            # A point marker as a one-point target: whatever its id, a detection is point 0.
+            dets = [replace(d, id=0) for d in dets]
         if dets:
             self.counts['detections'] += 1
         else:

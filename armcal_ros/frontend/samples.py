@@ -15,6 +15,11 @@ from typing import Optional
 
 import numpy as np
 
+#: Half-side (m) of the square that stands for a one-point target's extent: the reach of a
+#: guess of a marker's place on a tool (a few centimetres), so that a wrist turn that moves the
+#: true marker by a millimetre is seen as motion and as another place.
+POINT_REFERENCE_RADIUS = 0.05
+
 
 @dataclass
 class Observation:
@@ -134,9 +139,9 @@ class BoardTarget:
 
     def __post_init__(self):
         self.points = np.asarray(self.points, dtype=float)
-        if self.points.ndim != 2 or self.points.shape[1] != 3 or len(self.points) < 2 or \
+        if self.points.ndim != 2 or self.points.shape[1] != 3 or len(self.points) < 1 or \
                 not np.all(np.isfinite(self.points)):
-            raise ValueError(f'board points must be finite with shape (P >= 2, 3), got '
+            raise ValueError(f'target points must be finite with shape (P >= 1, 3), got '
                              f'{self.points.shape}')
         if self.T_link_target is not None:
             T = np.asarray(self.T_link_target, dtype=float)
@@ -159,9 +164,16 @@ class BoardTarget:
 
         Under :meth:`mount_guess`.  Any fixed non-collinear set tells two link poses apart;
         the board's own extent makes "the same place" mean "every corner within the
-        tolerance".
+        tolerance".  A one-point target (a point marker whose place on the link is estimated)
+        has no extent: a square of half-side :data:`POINT_REFERENCE_RADIUS` around it stands
+        in, so that views of the same marker position from another wrist orientation - what
+        makes its place observable - count as other places, and a turn about the guessed
+        point, which moves the true one, is not taken for stillness.
         """
         lo, hi = self.points.min(axis=0), self.points.max(axis=0)
+        if np.all(hi - lo == 0):
+            r = POINT_REFERENCE_RADIUS
+            lo, hi = lo - [r, r, 0.0], hi + [r, r, 0.0]
         corners = np.array([[lo[0], lo[1], lo[2]], [hi[0], lo[1], lo[2]],
                             [hi[0], hi[1], hi[2]], [lo[0], hi[1], hi[2]]])
         T = self.mount_guess()
