@@ -17,7 +17,8 @@ from armcal_ros.core.kinematic_prior import KinematicData
 from armcal_ros.core.target import optional_pose
 from armcal_ros.engine import CalibrationEngine, EngineSettings
 from armcal_ros.frontend.collector import SampleCollector
-from armcal_ros.frontend.detectors import CharucoBoard, CharucoDetector, make_detector
+from armcal_ros.frontend.detectors import (CharucoBoard, CharucoDetector, make_detector,
+                                           tag_corner_points)
 from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.frontend.store import SampleStore
 from armcal_ros.robot.kinematics import KinematicChain
@@ -59,14 +60,20 @@ def build_board(settings: Settings, data_set_target=None,
     """
     Return (CharucoBoard, BoardTarget) for a charuco target, else (None, None).
 
-    A point marker (sphere, tag centre) with ``estimate_marker_offset`` is a one-point target
-    (None, BoardTarget) seeded at ``marker_offset``: the board path estimates its place.
+    A tag of given ``aruco_size`` is a four-corner target (None, BoardTarget) on the link at
+    ``target_pose_guess`` (found by hand-eye when empty and estimated).  A point marker
+    (sphere, tag centre) with ``estimate_marker_offset`` is a one-point target (None,
+    BoardTarget) seeded at ``marker_offset``: the board path estimates its place.
 
     ``data_set_target`` (rows, cols, square_size, marker_size, dictionary) completes the
     ``charuco_*`` parameters from a data set's own description; ``data_set_guess`` (4, 4) seeds
     the mount when ``target_pose_guess`` is empty.
     """
     target = settings.target
+    if target.tag_corners:
+        guess = optional_pose(target.pose_guess or None)
+        return None, BoardTarget(tag_corner_points(target.aruco_size), guess,
+                                 target.estimate_mount)
     if not target.is_board:
         if not target.estimate_mount:
             return None, None
@@ -96,7 +103,7 @@ def build_detectors(settings: Settings, camera_names, board: Optional[CharucoBoa
                                       static_scene=det.sphere_static_scene)
         else:
             out[name] = make_detector('aruco', dictionary=det.aruco_dictionary,
-                                      marker_id=det.aruco_id)
+                                      marker_id=det.aruco_id, corners=settings.target.tag_corners)
     return out
 
 

@@ -172,6 +172,11 @@ PARAMS = [
           'moves'),
     Param('aruco_dictionary', 'string', 'DICT_4X4_50', 'ArUco dictionary (cv2.aruco name)'),
     Param('aruco_id', 'int', -1, 'ArUco id of the marker (-1: any)'),
+    Param('aruco_size', 'double', 0.0,
+          'side of the ArUco tag (its black square), metres: > 0 makes the tag a rigid target '
+          'of four corners on marker_link (its pose there given by target_pose_guess or '
+          'estimated with estimate_marker_offset); 0: the tag\'s centre as a point marker',
+          _nonneg, minimum=0.0),
     Param('publish_tf', 'bool', True, 'publish static TF base_frame -> <camera>_optical_frame'),
     Param('set_camera_info_services', 'string[]', [],
           'if not empty, one sensor_msgs/srv/SetCameraInfo service per camera to commit each '
@@ -301,11 +306,16 @@ def check_all(values: Dict[str, Any], require_robot_model=True):
                          'joint angles (the robot model\'s error Jacobian at each sample), '
                          'which pose input does not have; use fixed, independent, correlated '
                          'or auto')
-    if model in KINEMATIC_MODELS and values['marker_type'] == 'charuco':
+    tag_corners = values['marker_type'] == 'aruco' and values['aruco_size'] > 0
+    if model in KINEMATIC_MODELS and (values['marker_type'] == 'charuco' or tag_corners):
         raise ValueError(f'parameters noise_model and marker_type: noise_model {model} is not '
-                         'available with a charuco board (the board solver\'s global '
-                         'parameters are the board\'s mount on the link, not the arm\'s '
-                         'kinematic errors); use fixed, independent, correlated or auto')
+                         'available with a charuco board or a tag of given aruco_size (the '
+                         'board solver\'s global parameters are the target\'s mount on the '
+                         'link, not the arm\'s kinematic errors); use fixed, independent, '
+                         'correlated or auto')
+    if tag_corners and values['aruco_id'] < 0:
+        raise ValueError('parameters aruco_size and aruco_id: a tag used by its corners '
+                         '(aruco_size > 0) needs its aruco_id')
     if model in KINEMATIC_MODELS and values['estimate_marker_offset']:
         raise ValueError(f'parameters noise_model and estimate_marker_offset: noise_model '
                          f'{model} already estimates small marker-mount errors with the arm\'s '

@@ -13,7 +13,7 @@ part           parameters
 =============  ===========================================================================
 ``inputs``     camera_names, image_topics, joint_states_topic, pose_topic, pose_type
 ``robot``      robot_description(_file), base_frame, marker_link, marker_offset
-``target``     marker_type, charuco_*, target_pose_guess, estimate_marker_offset
+``target``     marker_type, charuco_*, aruco_size, target_pose_guess, estimate_marker_offset
 ``detector``   sphere_*, aruco_*, max_views_per_dwell
 ``front_end``  max_marker_speed, dwell_radius
 ``store``      max_samples, min_sample_spacing
@@ -130,14 +130,21 @@ class TargetSettings:
 
     marker_type: str = 'sphere'
     board: BoardSettings = BoardSettings()
+    #: Side of an ArUco tag used by its four corners (m); 0: the tag's centre as a point.
+    aruco_size: float = 0.0
     #: T_link_target of a board as (x, y, z, qx, qy, qz, qw); empty: unknown.
     pose_guess: Tuple[float, ...] = ()
     estimate_mount: bool = False
 
     @property
     def is_board(self) -> bool:
-        """Return True for a multi-point board target."""
-        return self.marker_type == 'charuco'
+        """Return True for a multi-point rigid target (a ChArUco board, a tag's corners)."""
+        return self.marker_type == 'charuco' or self.tag_corners
+
+    @property
+    def tag_corners(self) -> bool:
+        """Return True for an ArUco tag used by its four corners."""
+        return self.marker_type == 'aruco' and self.aruco_size > 0
 
 
 @dataclass(frozen=True)
@@ -276,11 +283,12 @@ def settings_from_values(values: Dict[str, Any], require_robot_model=True) -> Se
         robot=RobotSettings(v['robot_description'], v['robot_description_file'],
                             v['base_frame'], v['marker_link'], tuple(v['marker_offset'])),
         target=TargetSettings(
-            v['marker_type'],
-            BoardSettings(v['charuco_rows'], v['charuco_cols'], v['charuco_square_size'],
-                          v['charuco_marker_size'], v['charuco_dictionary'],
-                          v['charuco_legacy_pattern']),
-            tuple(v['target_pose_guess']), v['estimate_marker_offset']),
+            marker_type=v['marker_type'],
+            board=BoardSettings(v['charuco_rows'], v['charuco_cols'], v['charuco_square_size'],
+                                v['charuco_marker_size'], v['charuco_dictionary'],
+                                v['charuco_legacy_pattern']),
+            aruco_size=v['aruco_size'], pose_guess=tuple(v['target_pose_guess']),
+            estimate_mount=v['estimate_marker_offset']),
         detector=DetectorSettings(v['sphere_min_radius_px'], v['sphere_max_radius_px'],
                                   v['sphere_static_scene'], v['aruco_dictionary'],
                                   None if aruco_id < 0 else aruco_id,

@@ -225,9 +225,11 @@ def initialise_board_cameras(specs: Sequence[CameraSpec], data: BoardData,
         views = _views_of(data, j)
         guess = (intrinsics or {}).get(spec.name)
         try:
+            # A tag's four corners are a whole target; a board view wants six of its corners.
             vp = board_view_poses(views, spec.width, spec.height,
                                   K=None if guess is None else guess[0],
-                                  dist=None if guess is None else guess[1])
+                                  dist=None if guess is None else guess[1],
+                                  min_corners=min(6, len(data.points)))
             keys = sorted(vp.T_cam_target)
             he = hand_eye(data.poses[keys], [vp.T_cam_target[k] for k in keys])
         except ValueError as exc:

@@ -8,13 +8,15 @@ Marker detectors: an image in, zero or more 2D points with ids and a quality out
 
 import inspect
 
-from armcal_ros.frontend.detectors.aruco import ArucoDetector, diagonal_intersection
+from armcal_ros.frontend.detectors.aruco import (ArucoDetector, diagonal_intersection,
+                                                 tag_corner_points)
 from armcal_ros.frontend.detectors.base import Detection, Detector, to_gray
 from armcal_ros.frontend.detectors.charuco import CharucoBoard, CharucoDetector
 from armcal_ros.frontend.detectors.sphere import SphereDetector
 
 __all__ = ['ArucoDetector', 'CharucoBoard', 'CharucoDetector', 'Detection', 'Detector',
-           'diagonal_intersection', 'make_detector', 'SphereDetector', 'to_gray']
+           'diagonal_intersection', 'make_detector', 'SphereDetector', 'tag_corner_points',
+           'to_gray']
 
 
 _DETECTORS = {'sphere': SphereDetector, 'aruco': ArucoDetector}

@@ -34,10 +34,15 @@ class ArucoDetector(Detector):
     otherwise only that id.  ``minMarkerDistanceRate`` is 0 because the default missed
     strongly tilted tags under noise.  ``quality`` is the shortest side in pixels over 32,
     capped at 1 (corner accuracy degrades on small tags).
+
+    ``corners`` True returns the tag's four refined corners instead, as detections with ids
+    0-3 in OpenCV's order (top-left, top-right, bottom-right, bottom-left of the tag as printed):
+    the tag as a rigid four-point target (:func:`tag_corner_points`).  Corners of two tags
+    would share those ids, so this needs ``marker_id``.
     """
 
     def __init__(self, dictionary='DICT_4X4_50', marker_id=None, corner_refine_win_size=5,
-                 min_marker_distance_rate=0.0):
+                 min_marker_distance_rate=0.0, corners=False):
         self.dictionary_name = str(dictionary)
         self._dictionary = aruco_dictionary(dictionary)
         n_ids = int(self._dictionary.bytesList.shape[0])
@@ -47,6 +52,10 @@ class ArucoDetector(Detector):
                                  f'{dictionary}, got {marker_id!r}')
             marker_id = int(marker_id)
         self.marker_id = marker_id
+        self.corners = bool(corners)
+        if self.corners and marker_id is None:
+            raise ValueError('corners mode needs a marker_id (the corners of two tags would '
+                             'share their ids)')
         if int(corner_refine_win_size) != corner_refine_win_size or corner_refine_win_size < 1:
             raise ValueError(f'corner_refine_win_size must be a positive integer, got '
                              f'{corner_refine_win_size!r}')
@@ -85,9 +94,12 @@ class ArucoDetector(Detector):
                                + np.linalg.norm(quad[3] - quad[1]))
                 out.append(Detection(uv=centre, id=int(tag),
                                      quality=float(min(1.0, sides.min() / 32.0)),
-                                     radius_px=float(diag)))
+                                     radius_px=float(diag), corners=quad))
         out = self._merge_duplicates(out)
         self.last_status = 'ok' if out else 'none'
+        if self.corners:
+            return [Detection(uv=uv, id=k, quality=d.quality, radius_px=d.radius_px)
+                    for d in out[:1] for k, uv in enumerate(d.corners)]
         return out
 
     @staticmethod
@@ -106,5 +118,17 @@ class ArucoDetector(Detector):
                 group.append(det)
         return [g[0] if len(g) == 1 else Detection(
             uv=np.mean([d.uv for d in g], axis=0), id=g[0].id,
-            quality=max(d.quality for d in g), radius_px=float(np.mean([d.radius_px for d in g])))
+            quality=max(d.quality for d in g), radius_px=float(np.mean([d.radius_px for d in g])),
+            corners=np.mean([d.corners for d in g], axis=0))
             for g in out]
+
+
+def tag_corner_points(size):
+    """
+    Return (4, 3): a square tag's corners in its own frame, in OpenCV's corner order.
+
+    Origin at the centre, x to the right and y up as printed, z out of the tag: the object
+    points of ``cv2.SOLVEPNP_IPPE_SQUARE``.
+    """
+    h = 0.5 * float(size)
+    return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])

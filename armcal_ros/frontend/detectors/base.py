@@ -13,6 +13,7 @@ interface, image helpers and the checks of constructor parameters.
 
 from dataclasses import dataclass
 import math
+from typing import Optional
 
 import numpy as np
 
@@ -25,14 +26,16 @@ class Detection:
     One detected point.
 
     ``uv`` (2,) pixel position, ``id`` marker id (0 for a sphere, the tag id for ArUco),
-    ``quality`` in [0, 1] (detector specific, higher is better; see each detector), and
-    ``radius_px`` the apparent size (sphere radius, half the tag diagonal).
+    ``quality`` in [0, 1] (detector specific, higher is better; see each detector),
+    ``radius_px`` the apparent size (sphere radius, half the tag diagonal) and, for a tag,
+    ``corners`` (4, 2) its refined corners.
     """
 
     uv: np.ndarray
     id: int
     quality: float
     radius_px: float
+    corners: Optional[np.ndarray] = None
 
 
 class Detector:
