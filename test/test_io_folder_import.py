@@ -8,7 +8,6 @@ pose and the board's mount close to the truth.  The facebookresearch/fairo layou
 (ee_poses.csv, intrinsics.json by RealSense serial) is read from the real data when present.
 """
 
-import argparse
 import json
 import os
 
@@ -23,9 +22,9 @@ from armcal_ros.io.bag import bag_topics
 from armcal_ros.io.calib_files import write_camera_info
 from armcal_ros.io.folder_import import (FolderFormatError, read_capture_folder,
                                          write_capture_bag)
-from armcal_ros.offline import run
 from helpers.board_scene import BOARD_SIZE, check_mount, H, K, link_pose, render, T_CAM_BASE, \
     view_targets, W
+from helpers.captures import import_and_calibrate
 
 REAL = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..',
                                      'shared', 'data', 'fairo_franka_3cam', 'caldata_world_cam'))
@@ -53,17 +52,12 @@ def test_capture_folder_to_bag_to_calibration(tmp_path, capsys):
     assert topics['/tool_pose'] == ('geometry_msgs/msg/PoseStamped', 16)
     assert topics['/cam/image_raw/compressed'] == ('sensor_msgs/msg/CompressedImage', 8)
     assert topics['/cam/camera_info'] == ('sensor_msgs/msg/CameraInfo', 8)
+    assert 'intrinsics_mode:\n    - fixed' in (bag / 'params.yaml').read_text()
     # The written parameter file, completed with the marker, calibrates the camera.
-    params = (bag / 'params.yaml').read_text()
-    assert 'intrinsics_mode:\n    - fixed' in params
-    with open(bag / 'params.yaml', 'a') as f:
-        f.write('    marker_type: charuco\n    estimate_marker_offset: true\n'
-                '    noise_model: fixed\n    free_distortion: []\n    min_samples: 3\n' +
-                ''.join(f'    {k}: {v}\n' for k, v in BOARD_SIZE.items()))
-    out = tmp_path / 'out'
-    assert run(argparse.Namespace(bag=str(bag), params=str(bag / 'params.yaml'),
-                                  output=str(out), noise_model=None, quiet=True)) == 0
-    report = json.loads((out / 'report.json').read_text())
+    (tmp_path / 'again').mkdir()
+    report = import_and_calibrate(folder, tmp_path / 'again', marker_type='charuco',
+                                  estimate_marker_offset='true', noise_model='fixed',
+                                  free_distortion=[], min_samples=3, **BOARD_SIZE)
     cam = report['cameras']['cam']
     assert report['n_samples'] == 8
     np.testing.assert_allclose([cam['fx'], cam['fy'], cam['cx'], cam['cy']],
@@ -106,16 +100,11 @@ def test_the_franka_set_calibrates_end_to_end(tmp_path):
     # marker point estimated from a guess, every camera within 1 degree and 4 cm of the original
     # tool's poses (its per-camera marker points disagree with one another by centimetres).
     from scipy.spatial.transform import Rotation
-    bag = tmp_path / 'bag'
-    assert main(['import-folder', REAL, '--output', str(bag)]) == 0
-    with open(bag / 'params.yaml', 'a') as f:
-        f.write('    marker_type: aruco\n    aruco_dictionary: DICT_4X4_50\n    aruco_id: 0\n'
-                '    marker_offset: [0.05, 0.05, -0.05]\n    estimate_marker_offset: true\n'
-                '    noise_model: fixed\n    free_distortion: []\n    min_samples: 8\n')
-    out = tmp_path / 'out'
-    assert run(argparse.Namespace(bag=str(bag), params=str(bag / 'params.yaml'),
-                                  output=str(out), noise_model=None, quiet=True)) == 0
-    report = json.loads((out / 'report.json').read_text())
+    report = import_and_calibrate(REAL, tmp_path, marker_type='aruco',
+                                  aruco_dictionary='DICT_4X4_50', aruco_id=0,
+                                  marker_offset=[0.05, 0.05, -0.05],
+                                  estimate_marker_offset='true', noise_model='fixed',
+                                  free_distortion=[], min_samples=8)
     with open(os.path.join(os.path.dirname(REAL), 'reference', 'calibration.json')) as f:
         ref = json.load(f)
     for j, name in enumerate(('cam0', 'cam1', 'cam2')):

@@ -8,20 +8,17 @@ adjustment, the camera's pose to millimetres.  The tag's centre alone (``aruco_s
 give the mount's rotation; its four corners do.
 """
 
-import argparse
-import json
 import os
 
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from armcal_ros.cli import main
 from armcal_ros.core.camera import Camera
 from armcal_ros.core.target import invert, pose_vector
 from armcal_ros.frontend.detectors import ArucoDetector, tag_corner_points
 from armcal_ros.io.calib_files import write_camera_info
-from armcal_ros.offline import run
+from helpers.captures import import_and_calibrate
 
 W, H = 800, 600
 K = np.array([[700.0, 0, 399.5], [0, 705.0, 299.5], [0, 0, 1]])
@@ -92,16 +89,9 @@ def test_tag_corners_come_back_where_they_were_drawn():
 def test_a_tag_of_given_size_is_a_rigid_target_with_its_mount_estimated(tmp_path):
     folder = tmp_path / 'captures'
     write_folder(str(folder))
-    bag = tmp_path / 'bag'
-    assert main(['import-folder', str(folder), '--output', str(bag)]) == 0
-    with open(bag / 'params.yaml', 'a') as f:
-        f.write(f'    marker_type: aruco\n    aruco_id: {TAG_ID}\n    aruco_size: {SIZE}\n'
-                '    estimate_marker_offset: true\n    noise_model: fixed\n'
-                '    free_distortion: []\n    min_samples: 5\n')
-    out = tmp_path / 'out'
-    assert run(argparse.Namespace(bag=str(bag), params=str(bag / 'params.yaml'),
-                                  output=str(out), noise_model=None, quiet=True)) == 0
-    report = json.loads((out / 'report.json').read_text())
+    report = import_and_calibrate(folder, tmp_path, marker_type='aruco', aruco_id=TAG_ID,
+                                  aruco_size=SIZE, estimate_marker_offset='true',
+                                  noise_model='fixed', free_distortion=[], min_samples=5)
     assert report['n_samples'] == 10
     cam = report['cameras']['cam']
     assert cam['n_observations'] == 40 and cam['rms_px'] < 0.3
