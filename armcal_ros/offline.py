@@ -29,10 +29,10 @@ from armcal_ros.frontend.store import SampleStore
 from armcal_ros.io.bag import bag_topics, DeserializationError, iter_raw
 from armcal_ros.io.calib_files import atomic_write_text
 from armcal_ros.io.folder_import import capture_stamp, POSE_MARGIN_NS
-from armcal_ros.io.message_fields import pose_from_msg, stamp_ns
+from armcal_ros.io.message_fields import camera_from_camera_info, pose_from_msg, stamp_ns
 from armcal_ros.io.rct_import import is_rct_folder, load_rct_folder, RctFormatError
 from armcal_ros.robot.kinematics import KinematicChain
-from armcal_ros.settings import load_settings, Settings
+from armcal_ros.settings import load_settings, Settings, with_given_intrinsics
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 POSE_TYPES = ('geometry_msgs/msg/PoseStamped', 'geometry_msgs/msg/TransformStamped')
@@ -71,6 +71,8 @@ class Recording:
     board_guess: Optional[object] = None
     #: The source gives the link's poses whatever ``pose_topic`` says (a folder).
     poses_given: bool = False
+    #: Intrinsics read from the recording's CameraInfo (cameras given without a file).
+    intrinsics: Dict = field(default_factory=dict)
 
 
 @dataclass
@@ -87,6 +89,7 @@ class FrontEnd:
     messages: int
     time_s: float
     source: Dict = field(default_factory=dict)
+    intrinsics: Dict = field(default_factory=dict)
 
 
 @dataclass
@@ -143,7 +146,25 @@ def open_bag(bag, settings: Settings) -> Recording:
                 yield ('joints', stamp_ns(msg.header.stamp), msg.name, msg.position)
     total = topics[arm][1] + sum(topics[t][1] for t in cam_of_topic)
     info = dict(kind='bag', path=os.path.abspath(str(bag)), arm=inputs.describe_arm())
-    return Recording(events, total, info, warnings)
+    return Recording(events, total, info, warnings,
+                     intrinsics=_bag_intrinsics(bag, topics, settings))
+
+
+def _bag_intrinsics(bag, topics, settings: Settings):
+    """Read the first CameraInfo of each camera whose given intrinsics come from its topic."""
+    out = {}
+    for cam, topic in settings.intrinsics.topics:
+        if topic not in topics or topics[topic][1] == 0:
+            mode = dict(settings.intrinsics.modes)[cam]
+            raise CalibrateError(f'camera {cam}: intrinsics_mode {mode} without an '
+                                 f'intrinsics_files entry needs its CameraInfo on {topic}, '
+                                 f'which bag {bag} does not have')
+        try:
+            msg = next(iter_raw(bag, [topic])).deserialize()
+            out[cam] = settings.intrinsics.prior_from(cam, camera_from_camera_info(msg, cam))
+        except (DeserializationError, ValueError) as exc:
+            raise CalibrateError(f'camera {cam}: CameraInfo on {topic}: {exc}') from exc
+    return out
 
 
 def open_folder(path, settings: Settings) -> Recording:
@@ -228,7 +249,7 @@ def collect_samples(source, settings: Settings, progress: Callable[[int, int], N
         progress(rec.total, rec.total)
     return FrontEnd(pipe.chain, pipe.engine.settings.board, store, dict(collector.image_sizes),
                     dict(collector.counts), rec.warnings, added, n, time.perf_counter() - t0,
-                    rec.info)
+                    rec.info, rec.intrinsics)
 
 
 def solve_and_write(front: FrontEnd, settings: Settings, output_dir) -> OfflineResult:
@@ -237,6 +258,7 @@ def solve_and_write(front: FrontEnd, settings: Settings, output_dir) -> OfflineR
         raise CalibrateError(f'only {len(front.store)} samples (min_samples '
                              f'{settings.schedule.min_samples}): did the arm dwell in view of '
                              f'the cameras? front-end counts: {front.counts}')
+    settings = with_given_intrinsics(settings, front.intrinsics)
     try:
         engine = build_engine(settings, front.chain, front.board)
     except ValueError as exc:

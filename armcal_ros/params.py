@@ -219,9 +219,10 @@ PARAMS = [
           '(a Gaussian prior around the given values); empty: estimate every camera', _modes),
     Param('intrinsics_files', 'string[]', [],
           'per camera, a camera_info YAML (camera_calibration_parsers format, e.g. what the '
-          'driver or camera_calibration wrote) with the given K and D; needed for the cameras '
-          'whose intrinsics_mode is fixed or prior, "" for the others; relative paths are '
-          'resolved against the parameter file\'s directory'),
+          'driver or camera_calibration wrote) with the given K and D for intrinsics_mode fixed '
+          'or prior; "" (or an empty list): the first message on the CameraInfo topic beside '
+          'the camera\'s images (/ns/image_raw -> /ns/camera_info), live or in the bag; '
+          'relative paths are resolved against the parameter file\'s directory'),
     Param('intrinsics_sigma_px', 'double', 0.0,
           'prior standard deviation of fx, fy, cx and cy, pixels, for intrinsics_mode prior '
           '(no default: how good a factory calibration is depends on the camera)', _nonneg,
@@ -327,15 +328,10 @@ def check_all(values: Dict[str, Any], require_robot_model=True):
                          f'({len(cams)}), got {len(modes)}')
     given = [c for c, m in zip(cams, modes * len(cams) if len(modes) == 1 else modes)
              if m != 'estimate']
-    if given:
-        if len(files) != len(cams):
-            raise ValueError(f'parameters intrinsics_mode and intrinsics_files: cameras {given} '
-                             f'have given intrinsics, so intrinsics_files needs one entry per '
-                             f'camera ({len(cams)}), got {len(files)}')
-        missing = [c for c in given if not files[cams.index(c)]]
-        if missing:
-            raise ValueError(f'parameter intrinsics_files: no file for cameras {missing}, '
-                             f'whose intrinsics_mode is fixed or prior')
+    if given and files and len(files) != len(cams):
+        raise ValueError(f'parameters intrinsics_mode and intrinsics_files: intrinsics_files '
+                         f'must be empty (every camera\'s CameraInfo topic) or have one entry '
+                         f'per camera ({len(cams)}), got {len(files)}')
     if 'prior' in modes and not values['intrinsics_sigma_px'] > 0:
         raise ValueError('parameters intrinsics_mode and intrinsics_sigma_px: the prior mode '
                          'needs intrinsics_sigma_px > 0 (the given values\' standard deviation)')

@@ -35,6 +35,7 @@ from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
 from armcal_ros.core.priors import PriorSettings
 from armcal_ros.io.calib_files import camera_from_info_dict
+from armcal_ros.io.message_fields import camera_info_topic
 from armcal_ros.params import check_all, check_value, default_output_dir, load_params_file
 
 
@@ -185,6 +186,27 @@ class ScheduleSettings:
 
 
 @dataclass(frozen=True)
+class IntrinsicsSettings:
+    """Given intrinsics: which cameras, how held, and those still to come from CameraInfo."""
+
+    modes: Tuple[Tuple[str, str], ...] = ()
+    sigma_px: float = 0.0
+    sigma_dist: float = 0.0
+    #: camera -> CameraInfo topic, for given cameras without a file.
+    topics: Tuple[Tuple[str, str], ...] = ()
+
+    def prior_from(self, camera: str, info) -> IntrinsicsPrior:
+        """Return the IntrinsicsPrior of ``camera`` from its given values (a Camera)."""
+        mode = dict(self.modes)[camera]
+        sigma = sigma_dist = None
+        if mode == 'prior':
+            sigma = (self.sigma_px,) * 4
+            if self.sigma_dist > 0:
+                sigma_dist = (self.sigma_dist,) * 5
+        return IntrinsicsPrior.from_camera(info, sigma, sigma_dist)
+
+
+@dataclass(frozen=True)
 class OutputSettings:
     """Where results go."""
 
@@ -208,6 +230,7 @@ class Settings:
     solver: SolverSettings
     schedule: ScheduleSettings
     outputs: OutputSettings
+    intrinsics: IntrinsicsSettings = IntrinsicsSettings()
 
 
 def prior_settings(values) -> PriorSettings:
@@ -226,20 +249,35 @@ def solver_settings(values) -> SolverSettings:
         gate_sigmas=values['outlier_gate_sigmas'], intrinsics=given).validate())
 
 
+def intrinsics_settings(values) -> IntrinsicsSettings:
+    """Return the given-intrinsics part: modes, sigmas, the CameraInfo topics still needed."""
+    cams, modes = values['camera_names'], values['intrinsics_mode']
+    modes = modes * len(cams) if len(modes) == 1 else modes
+    files = values['intrinsics_files'] or [''] * len(cams)
+    given = [(c, m) for c, m in zip(cams, modes) if m != 'estimate']
+    topics = tuple((c, camera_info_topic(t)) for c, m, t, f in
+                   zip(cams, modes, values['image_topics'], files) if m != 'estimate' and not f)
+    return IntrinsicsSettings(tuple(given), values['intrinsics_sigma_px'],
+                              values['intrinsics_sigma_dist'], topics)
+
+
 def given_intrinsics(values) -> Dict[str, IntrinsicsPrior]:
     """
-    Read the given intrinsics: camera name -> IntrinsicsPrior for modes fixed and prior.
+    Read the given intrinsics of files: camera name -> IntrinsicsPrior (modes fixed, prior).
 
     The files are camera_info YAMLs; only K, D and the image size are taken from them (the
     camera name in a file is the driver's business).  ValueError names the parameter and file.
+    Cameras whose intrinsics come from a CameraInfo topic are not here (the node and the bag
+    reader fill them in: :attr:`IntrinsicsSettings.topics`).
     """
-    cams, modes = values['camera_names'], values['intrinsics_mode']
-    modes = modes * len(cams) if len(modes) == 1 else modes
+    part = intrinsics_settings(values)
+    cams = values['camera_names']
+    files = values['intrinsics_files'] or [''] * len(cams)
     out = {}
-    for k, (cam, mode) in enumerate(zip(cams, modes)):
-        if mode == 'estimate':
+    for cam, mode in part.modes:
+        path = files[cams.index(cam)]
+        if not path:
             continue
-        path = values['intrinsics_files'][k]
         try:
             with open(path, encoding='utf-8') as f:
                 doc = yaml.safe_load(f)
@@ -248,13 +286,14 @@ def given_intrinsics(values) -> Dict[str, IntrinsicsPrior]:
             info = camera_from_info_dict(doc, source=path)
         except (OSError, yaml.YAMLError, ValueError) as exc:
             raise ValueError(f'parameter intrinsics_files: camera {cam}: {exc}') from exc
-        sigma = sigma_dist = None
-        if mode == 'prior':
-            sigma = (values['intrinsics_sigma_px'],) * 4
-            if values['intrinsics_sigma_dist'] > 0:
-                sigma_dist = (values['intrinsics_sigma_dist'],) * 5
-        out[cam] = IntrinsicsPrior.from_camera(info, sigma, sigma_dist)
+        out[cam] = part.prior_from(cam, info)
     return out
+
+
+def with_given_intrinsics(settings: Settings, given: Dict[str, IntrinsicsPrior]) -> Settings:
+    """Return ``settings`` with more cameras' intrinsics given (e.g. from CameraInfo)."""
+    solver = replace(settings.solver, intrinsics={**settings.solver.intrinsics, **given})
+    return replace(settings, solver=solver)
 
 
 def _named(build):
@@ -299,7 +338,8 @@ def settings_from_values(values: Dict[str, Any], require_robot_model=True) -> Se
         solver=solver_settings(v),
         schedule=ScheduleSettings(v['min_samples'], v['solve_period'], v['min_new_samples']),
         outputs=OutputSettings(v['output_dir'] or default_output_dir(), v['publish_tf'],
-                               tuple(v['set_camera_info_services']), v['resume']))
+                               tuple(v['set_camera_info_services']), v['resume']),
+        intrinsics=intrinsics_settings(v))
 
 
 def load_settings(path, overrides: Optional[Dict[str, Any]] = None,

@@ -16,31 +16,15 @@ import numpy as np
 import pytest
 
 from armcal_ros.cli import main
-from armcal_ros.core.camera import Camera
-from armcal_ros.core.target import invert, pose_vector
+from armcal_ros.core.target import invert
 from armcal_ros.io.bag import bag_topics
-from armcal_ros.io.calib_files import write_camera_info
 from armcal_ros.io.folder_import import (FolderFormatError, read_capture_folder,
                                          write_capture_bag)
-from helpers.board_scene import BOARD_SIZE, check_mount, H, K, link_pose, render, T_CAM_BASE, \
-    view_targets, W
+from helpers.board_scene import BOARD_SIZE, check_mount, K, T_CAM_BASE, write_capture_folder
 from helpers.captures import import_and_calibrate
 
 REAL = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..',
                                      'shared', 'data', 'fairo_franka_3cam', 'caldata_world_cam'))
-
-
-def write_capture_folder(root, n=8):
-    os.makedirs(os.path.join(root, 'images'))
-    os.makedirs(os.path.join(root, 'camera_info'))
-    rows = ['sample,x,y,z,qx,qy,qz,qw']
-    for k, T_ct in enumerate(view_targets(n)):
-        cv2.imwrite(os.path.join(root, 'images', f's{k:02d}_cam.png'), render(T_ct))
-        rows.append(f'{k},' + ','.join(f'{v:.10f}' for v in pose_vector(link_pose(T_ct))))
-    with open(os.path.join(root, 'poses.csv'), 'w') as f:
-        f.write('\n'.join(rows) + '\n')
-    write_camera_info(os.path.join(root, 'camera_info', 'cam.yaml'),
-                      Camera('cam', W, H, K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
 
 
 def test_capture_folder_to_bag_to_calibration(tmp_path, capsys):
@@ -114,3 +98,29 @@ def test_the_franka_set_calibrates_end_to_end(tmp_path):
         dR = np.array(ref[j]['camera_base_ori']).T @ Rotation.from_quat(
             cam['rotation']).as_matrix()
         assert np.degrees(Rotation.from_matrix(dR).magnitude()) < 1.0
+
+
+def test_given_intrinsics_from_the_bags_camera_info(tmp_path):
+    # intrinsics_mode fixed without a file: the first CameraInfo beside the images is used.
+    import yaml
+    from armcal_ros.offline import calibrate_bag, CalibrateError
+    from armcal_ros.settings import load_settings
+    folder = tmp_path / 'captures'
+    write_capture_folder(str(folder))
+    bag = tmp_path / 'bag'
+    assert main(['import-folder', str(folder), '--output', str(bag)]) == 0
+    p = tmp_path / 'p.yaml'
+    p.write_text(yaml.safe_dump({'armcal': {'ros__parameters': dict(
+        camera_names=['cam'], image_topics=['/cam/image_raw/compressed'],
+        pose_topic='/tool_pose', marker_type='charuco', estimate_marker_offset=True,
+        noise_model='fixed', free_distortion=[], min_samples=3, intrinsics_mode=['fixed'],
+        **BOARD_SIZE)}}))
+    cam = calibrate_bag(str(bag), load_settings(str(p)), tmp_path / 'out').report['cameras']
+    np.testing.assert_allclose([cam['cam'][k] for k in ('fx', 'fy', 'cx', 'cy')],
+                               [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], atol=1e-3)
+    # A folder without intrinsics gives a bag without CameraInfo: refused, naming the topic.
+    import shutil
+    shutil.rmtree(folder / 'camera_info')
+    assert main(['import-folder', str(folder), '--output', str(tmp_path / 'bare')]) == 0
+    with pytest.raises(CalibrateError, match='needs its CameraInfo on /cam/camera_info'):
+        calibrate_bag(str(tmp_path / 'bare'), load_settings(str(p)), tmp_path / 'out2')

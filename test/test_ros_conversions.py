@@ -3,6 +3,7 @@ import cv2
 import numpy as np
 import pytest
 
+from armcal_ros.io.message_fields import camera_from_camera_info
 from armcal_ros.ros import conversions as conv
 from helpers.cameras import camera, points
 
@@ -25,7 +26,7 @@ def test_camera_info_follows_the_conventions():
     X = points()
     uv, _ = cv2.projectPoints(X, cam.rvec, cam.translation, K, np.asarray(msg.d))
     np.testing.assert_allclose(uv.reshape(-1, 2), cam.project(X), atol=1e-9)
-    back = conv.camera_from_camera_info(msg, 'cam1')
+    back = camera_from_camera_info(msg, 'cam1')
     np.testing.assert_allclose(back.K, cam.K)
     np.testing.assert_allclose(back.dist, cam.dist)
 
@@ -34,10 +35,13 @@ def test_camera_from_camera_info_refuses_uncalibrated_and_other_models():
     msg = conv.camera_info_msg(camera(), conv.time_msg(0))
     msg.distortion_model = 'equidistant'
     with pytest.raises(ValueError, match='plumb_bob'):
-        conv.camera_from_camera_info(msg)
+        camera_from_camera_info(msg)
+    # Rectified images: any model with zero coefficients is the pinhole.
+    msg.d = [0.0] * 4
+    assert np.all(camera_from_camera_info(msg).dist == 0)
     msg.k = [0.0] * 9
     with pytest.raises(ValueError, match='uncalibrated'):
-        conv.camera_from_camera_info(msg)
+        camera_from_camera_info(msg)
 
 
 def test_pose_and_transform_are_T_base_camera():

@@ -27,6 +27,7 @@ from sensor_msgs.srv import SetCameraInfo  # noqa: E402
 from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 
 from armcal_ros.io.calib_files import read_camera_info, read_cameras  # noqa: E402
+from armcal_ros.io.message_fields import camera_from_camera_info  # noqa: E402
 from armcal_ros.ros import conversions as conv  # noqa: E402
 from helpers.params_files import PUMA_URDF, write_params  # noqa: E402
 from helpers.ros_nodes import (diag_values, refused_start, start_node, start_replay,  # noqa: E402
@@ -172,7 +173,7 @@ def test_camera_info_consumer_reproduces_ground_truth_pixels(live, sim):
         assert pose.header.frame_id == 'base_link'
         cov = np.asarray(pose.pose.covariance).reshape(6, 6)
         assert np.all(np.linalg.eigvalsh(cov) > 0), 'pose covariance must be positive definite'
-        est = conv.camera_from_pose(conv.camera_from_camera_info(info, cam), pose)
+        est = conv.camera_from_pose(camera_from_camera_info(info, cam), pose)
         K, D = np.asarray(info.k).reshape(3, 3), np.asarray(info.d)
         sel = (g['frame_camera'] == j) & (g['frame_occlusion'] == 0)
         X, uv_true = g['frame_marker'][sel], g['frame_uv'][sel]

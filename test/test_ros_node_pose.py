@@ -116,3 +116,29 @@ def test_board_with_pose_input_live_equals_offline(ros_env, client, board_pose_b
         mount = yaml.safe_load(f)
     np.testing.assert_allclose(mount['translation'],
                                offline.report['target']['T_link_target'][:3], atol=1e-6)
+
+
+def test_given_intrinsics_from_the_drivers_camera_info(ros_env, client, tmp_path):
+    """Hold the intrinsics the driver's CameraInfo gives (intrinsics_mode fixed, no file)."""
+    from helpers.board_scene import K, write_capture_folder
+    from armcal_ros.cli import main
+    folder = tmp_path / 'captures'
+    write_capture_folder(str(folder))
+    bag = tmp_path / 'bag'
+    assert main(['import-folder', str(folder), '--output', str(bag)]) == 0
+    params = board_params(tmp_path / 'p.yaml', pose_topic='/tool_pose', **BOARD_SIZE,
+                          image_topics=['/cam/image_raw/compressed'], intrinsics_mode=['fixed'],
+                          solve_period=1.0, resume=False, output_dir=str(tmp_path / 'live'))
+    info = {'cam': client.record(CameraInfo, '/armcal/cam/camera_info')[0]}
+    diag, _ = client.record(DiagnosticArray, '/diagnostics', 10)
+    procs = []
+    try:
+        node, _ = replay_and_calibrate(client, ros_env, params, bag, tmp_path, 9.0, 1.0, procs,
+                                       diag, info, delay=3.0)
+        log = node.log()
+    finally:
+        for p in procs:
+            p.kill()
+    assert 'intrinsics given by CameraInfo on /cam/camera_info (fixed' in log, log
+    k = np.asarray(info['cam'][-1][1].k).reshape(3, 3)
+    np.testing.assert_allclose(k, K, atol=1e-3)

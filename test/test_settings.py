@@ -119,9 +119,8 @@ def test_given_intrinsics_from_camera_info_files(tmp_path):
 
 @pytest.mark.parametrize('change, why', [
     ({'intrinsics_mode': ['fixed', 'fixed', 'fixed']}, 'empty, one mode, or one per camera'),
-    ({'intrinsics_mode': ['fixed'], 'intrinsics_files': []}, 'needs one entry per camera'),
-    ({'intrinsics_mode': ['estimate', 'fixed'], 'intrinsics_files': ['a.yaml', '']},
-     r"no file for cameras \['r'\]"),
+    ({'intrinsics_mode': ['fixed'], 'intrinsics_files': ['a.yaml']},
+     'must be empty .* or have one entry per camera'),
     ({'intrinsics_mode': ['prior'], 'intrinsics_files': ['a.yaml', 'a.yaml']},
      'needs intrinsics_sigma_px > 0'),
     ({'intrinsics_mode': ['focus']}, 'unknown modes'),
@@ -132,3 +131,14 @@ def test_given_intrinsics_are_refused_with_the_reason(change, why):
     with pytest.raises(ValueError, match=why):
         settings_from_values(_values(camera_names=['l', 'r'], image_topics=['/l', '/r'],
                                      **change))
+
+
+def test_given_cameras_without_a_file_wait_for_their_camera_info_topic():
+    s = settings_from_values(_values(camera_names=['l', 'r'],
+                                     image_topics=['/l/image_raw', '/r/image_raw/compressed'],
+                                     intrinsics_mode=['prior'], intrinsics_sigma_px=2.0))
+    assert s.solver.intrinsics == {}
+    assert s.intrinsics.topics == (('l', '/l/camera_info'), ('r', '/r/camera_info'))
+    from armcal_ros.core.camera import Camera
+    given = s.intrinsics.prior_from('r', Camera('r', 640, 480, 600.0, 601.0, 320.0, 240.0))
+    assert given.mode == 'prior' and given.sigma == (2.0,) * 4 and given.width == 640

@@ -54,23 +54,6 @@ def camera_info_msg(cam: Camera, stamp: Time, frame_id=None) -> CameraInfo:
     return msg
 
 
-def camera_from_camera_info(msg: CameraInfo, name='camera') -> Camera:
-    """
-    Read a CameraInfo message into a :class:`Camera` (identity pose), as a consumer would.
-
-    Raises ValueError for an uncalibrated message (K[0] == 0) or a model other than plumb_bob.
-    """
-    K = np.asarray(msg.k, float).reshape(3, 3)
-    if K[0, 0] == 0:
-        raise ValueError(f'camera_info of {name}: K[0] == 0 means uncalibrated')
-    if msg.distortion_model != 'plumb_bob':
-        raise ValueError(f'camera_info of {name}: distortion_model must be plumb_bob, got '
-                         f'{msg.distortion_model!r}')
-    d = np.zeros(5)
-    d[:min(5, len(msg.d))] = np.asarray(msg.d, float)[:5]
-    return Camera(name, msg.width, msg.height, K[0, 0], K[1, 1], K[0, 2], K[1, 2], d)
-
-
 def pose_msg(cam: Camera, covariance, base_frame, stamp: Time) -> PoseWithCovarianceStamped:
     """Return T_base_camera of ``cam`` with its 6x6 covariance."""
     t, q = cam.pose_in_world()

@@ -31,6 +31,7 @@ model, its hyperparameters, the solver's settings and the schedule may change wh
 take effect at the next solve.
 """
 
+import dataclasses
 import os
 import signal
 import sys
@@ -57,13 +58,13 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from armcal_ros.compose import build_pipeline, engine_settings
-from armcal_ros.io.message_fields import pose_from_msg, stamp_ns
+from armcal_ros.io.message_fields import camera_from_camera_info, pose_from_msg, stamp_ns
 from armcal_ros.params import BY_NAME, check_value, NODE_NAME, PARAMS, resolve_paths
 from armcal_ros.ros import conversions as conv
 from armcal_ros.ros.event_queue import EventQueue
 from armcal_ros.ros.raw_message import LazyMessage
 from armcal_ros.ros.status import diagnostic_statuses, NodeState
-from armcal_ros.settings import settings_from_values
+from armcal_ros.settings import settings_from_values, with_given_intrinsics
 
 #: Parameters that may change while the node runs (they apply from the next solve).
 RUNTIME_PARAMETERS = frozenset([
@@ -221,6 +222,14 @@ class CalibratorNode(Node):
             self.create_subscription(mtype, topic, self._image_callback(cam, mtype),
                                      sensor_qos(30), raw=True, **quiet)
             self.get_logger().info(f'{cam}: {mtype.__name__} on {topic}')
+        # Given intrinsics without a file: the driver's CameraInfo (its first calibrated
+        # message); until it arrives the camera's images are collected but it is not solved.
+        self._info_intrinsics = {}
+        self._info_pending = dict(self.settings.intrinsics.topics)
+        for cam, topic in self.settings.intrinsics.topics:
+            self.create_subscription(CameraInfo, topic, self._camera_info_callback(cam),
+                                     sensor_qos(5), **quiet)
+            self.get_logger().info(f'{cam}: intrinsics from CameraInfo on {topic}')
 
         if v['resume']:
             self._resume()
@@ -303,7 +312,29 @@ class CalibratorNode(Node):
 
     def _engine_settings(self, values):
         """Return the engine's settings under new parameter values (same target, cameras)."""
-        return engine_settings(settings_from_values(values), self.engine.settings.board)
+        settings = with_given_intrinsics(settings_from_values(values), self._info_intrinsics)
+        return engine_settings(settings, self.engine.settings.board)
+
+    def _camera_info_callback(self, camera):
+        def callback(msg):
+            if camera not in self._info_pending:
+                return
+            try:
+                info = camera_from_camera_info(msg, camera)
+                given = self.settings.intrinsics.prior_from(camera, info)
+            except ValueError as exc:
+                self._log_input(f'{camera}: CameraInfo not usable as given intrinsics: {exc}')
+                return
+            topic = self._info_pending.pop(camera)
+            self._info_intrinsics[camera] = given
+            self.engine.settings = dataclasses.replace(
+                self.engine.settings, solver=dataclasses.replace(
+                    self.engine.settings.solver,
+                    intrinsics={**self.engine.settings.solver.intrinsics, camera: given}))
+            self.get_logger().info(f'{camera}: intrinsics given by CameraInfo on {topic} '
+                                   f'({given.mode}: fx {info.fx:.2f}, fy {info.fy:.2f}, '
+                                   f'cx {info.cx:.2f}, cy {info.cy:.2f})')
+        return callback
 
     def _apply_runtime_parameters(self, params):
         changed = [p for p in params if p.name in BY_NAME]
@@ -361,7 +392,8 @@ class CalibratorNode(Node):
                     samples = self._guard(self._add_image, *item)
                 self._store(samples)
             for cam, (w, h) in list(self.collector.image_sizes.items()):
-                if self.engine.image_sizes.get(cam) != (w, h):
+                # A camera still waiting for its CameraInfo stays out of the solves.
+                if cam not in self._info_pending and self.engine.image_sizes.get(cam) != (w, h):
                     self.engine.set_image_size(cam, w, h)
             self._snapshot()
             if len(batch) < BATCH_SIZE:

@@ -18,9 +18,11 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
+from armcal_ros.core.camera import Camera
 from armcal_ros.core.target import invert, pose_vector
 from armcal_ros.frontend.detectors import CharucoBoard
 from armcal_ros.io.bag import BagWriter
+from armcal_ros.io.calib_files import write_camera_info
 from armcal_ros.robot.kinematics import KinematicChain
 from helpers.params_files import write_params
 
@@ -212,3 +214,17 @@ def check_mount(T_vec, tol_m=2e-3, tol_deg=0.3):
     assert np.linalg.norm(np.asarray(T_vec[:3]) - MOUNT[:3, 3]) < tol_m
     dR = Rotation.from_quat(T_vec[3:]).as_matrix().T @ MOUNT[:3, :3]
     assert np.degrees(Rotation.from_matrix(dR).magnitude()) < tol_deg
+
+
+def write_capture_folder(root, n=8):
+    """Write the scene as a capture folder: poses.csv, images/sNN_cam.png, camera_info."""
+    os.makedirs(os.path.join(root, 'images'))
+    os.makedirs(os.path.join(root, 'camera_info'))
+    rows = ['sample,x,y,z,qx,qy,qz,qw']
+    for k, T_ct in enumerate(view_targets(n)):
+        cv2.imwrite(os.path.join(root, 'images', f's{k:02d}_cam.png'), render(T_ct))
+        rows.append(f'{k},' + ','.join(f'{v:.10f}' for v in pose_vector(link_pose(T_ct))))
+    with open(os.path.join(root, 'poses.csv'), 'w') as f:
+        f.write('\n'.join(rows) + '\n')
+    write_camera_info(os.path.join(root, 'camera_info', 'cam.yaml'),
+                      Camera('cam', W, H, K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
