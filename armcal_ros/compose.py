@@ -120,11 +120,15 @@ def min_frames_per_dwell(settings: Settings) -> int:
 def engine_settings(settings: Settings, board: Optional[BoardTarget] = None) -> EngineSettings:
     """Return the engine's settings (also used when the node's parameters change at runtime)."""
     s = settings.schedule
+    robot, eih = settings.robot, settings.target.eye_in_hand
+    # With the cameras on the arm their poses are in the link's frame, the target's in the base.
     return EngineSettings(list(settings.inputs.camera_names), settings.prior, settings.solver,
                           min_samples=s.min_samples, solve_period_s=s.solve_period_s,
                           min_new_samples=s.min_new_samples,
-                          base_frame=settings.robot.base_frame, board=board,
-                          marker_link=settings.robot.marker_link).validate()
+                          base_frame=robot.marker_link if eih else robot.base_frame,
+                          board=board,
+                          marker_link=robot.base_frame if eih else robot.marker_link,
+                          eye_in_hand=eih).validate()
 
 
 def build_store(settings: Settings, chain: Optional[KinematicChain]) -> SampleStore:
@@ -171,5 +175,6 @@ def build_pipeline(settings: Settings, log: Optional[Callable[[str], None]] = No
     collector = SampleCollector(chain, settings.robot.marker_offset, names, detectors,
                                 fe.max_marker_speed, fe.dwell_radius, log=log, board=target,
                                 max_views_per_dwell=det.max_views_per_dwell,
-                                min_frames=min_frames_per_dwell(settings))
+                                min_frames=min_frames_per_dwell(settings),
+                                cameras_on_link=settings.target.eye_in_hand)
     return Pipeline(chain, board, collector, build_engine(settings, chain, target))

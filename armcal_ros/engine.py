@@ -16,6 +16,12 @@ previous + reject_rms_margin_px)``, nor its inlier fraction drop by more than
 ``reject_inlier_drop``.  A burst of bad detections therefore cannot overwrite a good calibration;
 the rejection is reported with its reason.
 
+Cameras on the arm (``EngineSettings.eye_in_hand``) looking at a static target are the same
+problem with the roles of base and link swapped: seen from the link, the target moves by
+T_link_base(v) = T_base_link(v)^-1 while the cameras stand still.  So the board solver is given
+the inverted link poses; what it calls T_link_target is the target's pose in the base frame,
+and the cameras' poses come out in the link's frame (T_link_camera).
+
 Targets: point samples (a sphere, a tag) are solved by
 :func:`~armcal_ros.core.calibration.calibrate` over one 3-D point per sample.  With a board
 (``EngineSettings.board``) every sample is a view - the link pose and the corners each camera
@@ -40,7 +46,7 @@ from armcal_ros.core.image_noise import pooled_pixel_sigma
 from armcal_ros.core.kinematic_prior import KinematicData
 from armcal_ros.core.priors import KINEMATIC_MODELS, PriorSettings
 from armcal_ros.core.results import Calibration, calibration_from_result
-from armcal_ros.core.target import pose_vector
+from armcal_ros.core.target import invert, pose_vector
 from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.frontend.store import SampleStore
 from armcal_ros.io.results_files import (CALIBRATION_FILE, load_calibration, read_target_yaml,
@@ -64,6 +70,9 @@ class EngineSettings:
     #: A board target (None: point samples); ``marker_link`` names its link in target.yaml.
     board: Optional[BoardTarget] = None
     marker_link: str = 'tool0'
+    #: The cameras ride on the marker link, the board target is static in ``base_frame``: the
+    #: solve swaps the roles (module docstring) and the cameras come out in ``marker_link``.
+    eye_in_hand: bool = False
 
     def validate(self):
         """Raise ValueError naming the first bad setting; return self."""
@@ -332,6 +341,8 @@ class CalibrationEngine:
         def cat(parts, shape=(0,)):
             return np.concatenate(parts) if parts else np.zeros(shape)
         poses = np.array([smp.pose for smp in samples]).reshape(-1, 4, 4)
+        if self.settings.eye_in_hand:
+            poses = invert(poses)
         return BoardData(poses, board.points, cat(view), cat(cam), cat(corner), cat(uv, (0, 2)))
 
     def _solve_board(self) -> SolveOutcome:

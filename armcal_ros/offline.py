@@ -388,13 +388,15 @@ def run(args):
         print('', file=sys.stderr)
     print(format_table(res.report))
     tgt = res.report.get('target')
+    where = (settings.robot.base_frame if settings.target.eye_in_hand
+             else settings.robot.marker_link)
     if tgt and tgt['T_link_target'] is not None and not settings.target.is_board:
         std = tgt['std'] or [float('nan')] * 3
-        print(f'marker_offset in {settings.robot.marker_link} (estimated), m: ' +
+        print(f'marker place in {where} (estimated), m: ' +
               ' '.join(f'{v:.5f}' for v in tgt['T_link_target'][:3]) + ' +/- ' +
               ' '.join(f'{v:.5f}' for v in std[:3]))
     elif tgt and tgt['T_link_target'] is not None:
-        print(f'T_{settings.robot.marker_link}_target (x y z qx qy qz qw): ' +
+        print(f'T_{where}_target (x y z qx qy qz qw): ' +
               ' '.join(f'{v:.5f}' for v in tgt['T_link_target']) +
               (' (estimated)' if tgt['estimated'] else ' (given)'))
     print(f'wrote {", ".join(os.path.basename(f) for f in res.files)} to {args.output}')

@@ -206,6 +206,10 @@ PARAMS = [
           'estimate the target\'s place on marker_link from the data: a board\'s pose '
           '(T_link_target), or a sphere\'s or tag centre\'s position, seeded at marker_offset '
           '(a guess centimetres off will do; the views must turn the wrist)'),
+    Param('eye_in_hand', 'bool', False,
+          'the cameras ride on marker_link and look at a static target: marker_offset (a point) '
+          'or target_pose_guess (a tag or board) are then its place in base_frame, and the '
+          'cameras\' poses are given in marker_link (T_<marker_link>_camera)'),
     Param('target_pose_guess', 'double[]', [],
           'T_link_target of a board as [x, y, z, qx, qy, qz, qw] (seed when estimated; empty: '
           'found by hand-eye, or the data set\'s own guess)', _pose7),
@@ -314,6 +318,16 @@ def check_all(values: Dict[str, Any], require_robot_model=True):
                          'board solver\'s global parameters are the target\'s mount on the '
                          'link, not the arm\'s kinematic errors); use fixed, independent, '
                          'correlated or auto')
+    if values['eye_in_hand'] and model in KINEMATIC_MODELS:
+        raise ValueError(f'parameters noise_model and eye_in_hand: noise_model {model} is not '
+                         'available with cameras on the arm (the target is static; the '
+                         'solver\'s global parameters are its place); use fixed, independent, '
+                         'correlated or auto')
+    if values['eye_in_hand'] and not (values['marker_type'] == 'charuco' or tag_corners or
+                                      values['estimate_marker_offset']):
+        raise ValueError('parameters eye_in_hand and estimate_marker_offset: with the cameras '
+                         'on the arm a point target\'s place in base_frame is estimated; set '
+                         'estimate_marker_offset (marker_offset is the guess)')
     if tag_corners and values['aruco_id'] < 0:
         raise ValueError('parameters aruco_size and aruco_id: a tag used by its corners '
                          '(aruco_size > 0) needs its aruco_id')

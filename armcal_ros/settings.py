@@ -13,7 +13,8 @@ part           parameters
 =============  ===========================================================================
 ``inputs``     camera_names, image_topics, joint_states_topic, pose_topic, pose_type
 ``robot``      robot_description(_file), base_frame, marker_link, marker_offset
-``target``     marker_type, charuco_*, aruco_size, target_pose_guess, estimate_marker_offset
+``target``     marker_type, charuco_*, aruco_size, target_pose_guess, estimate_marker_offset,
+               eye_in_hand
 ``detector``   sphere_*, aruco_*, max_views_per_dwell
 ``front_end``  max_marker_speed, dwell_radius
 ``store``      max_samples, min_sample_spacing
@@ -133,6 +134,8 @@ class TargetSettings:
     board: BoardSettings = BoardSettings()
     #: Side of an ArUco tag used by its four corners (m); 0: the tag's centre as a point.
     aruco_size: float = 0.0
+    #: The cameras ride on the marker link and the target is static in the base frame.
+    eye_in_hand: bool = False
     #: T_link_target of a board as (x, y, z, qx, qy, qz, qw); empty: unknown.
     pose_guess: Tuple[float, ...] = ()
     estimate_mount: bool = False
@@ -327,7 +330,7 @@ def settings_from_values(values: Dict[str, Any], require_robot_model=True) -> Se
                                 v['charuco_marker_size'], v['charuco_dictionary'],
                                 v['charuco_legacy_pattern']),
             aruco_size=v['aruco_size'], pose_guess=tuple(v['target_pose_guess']),
-            estimate_mount=v['estimate_marker_offset']),
+            estimate_mount=v['estimate_marker_offset'], eye_in_hand=v['eye_in_hand']),
         detector=DetectorSettings(v['sphere_min_radius_px'], v['sphere_max_radius_px'],
                                   v['sphere_static_scene'], v['aruco_dictionary'],
                                   None if aruco_id < 0 else aruco_id,

@@ -124,3 +124,17 @@ def test_given_intrinsics_from_the_bags_camera_info(tmp_path):
     assert main(['import-folder', str(folder), '--output', str(tmp_path / 'bare')]) == 0
     with pytest.raises(CalibrateError, match='needs its CameraInfo on /cam/camera_info'):
         calibrate_bag(str(tmp_path / 'bare'), load_settings(str(p)), tmp_path / 'out2')
+
+
+@pytest.mark.skipif(not os.path.isdir(REAL), reason=f'real data {REAL} absent')
+def test_the_franka_wrist_camera_calibrates_eye_in_hand(tmp_path):
+    # The camera on the flange, a static tag: the original tool accepts < 2 px.
+    wrist = os.path.join(os.path.dirname(REAL), 'caldata_wrist_cam')
+    report = import_and_calibrate(wrist, tmp_path, marker_type='aruco', aruco_id=1,
+                                  marker_offset=[0.5, 0.0, 0.0], estimate_marker_offset='true',
+                                  eye_in_hand='true', noise_model='fixed', free_distortion=[],
+                                  min_samples=8)
+    cam = report['cameras']['cam0']
+    assert cam['rms_px'] < 2.0 and cam['n_inliers'] >= 18, cam
+    # The tag lies on the table: its centre's height in the base is about zero.
+    assert abs(report['target']['T_link_target'][2]) < 0.02

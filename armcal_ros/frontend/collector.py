@@ -32,6 +32,10 @@ from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.robot.kinematics import KinematicChain
 
 
+#: Distance (m) of the points whose motion stands for the scene's in a camera riding on the arm.
+CAMERA_ON_LINK_REFERENCE_M = 1.0
+
+
 class RateLimitedLog:
     """Call ``log(message)`` at most once per ``period_s`` for each key (first time at once)."""
 
@@ -70,6 +74,11 @@ class SampleCollector:
     not decoded.  A sphere or a tag is not capped: detecting one costs about a millisecond,
     and its pooling wants several frames.
 
+    ``cameras_on_link`` (eye-in-hand): the cameras move with the link and the target stands
+    still; stillness and "the same place" then follow the link's pose as seen from about a
+    metre (:data:`CAMERA_ON_LINK_REFERENCE_M`), since a small turn of the camera moves the whole
+    scene in the image.
+
     ``min_frames`` is how many frames of a camera a dwell needs for an observation (None: 1
     for a board, 2 otherwise).  A board's corners come from its markers' decoded ids and a
     local homography fit, and a tag's from its decoded id: one frame is trustworthy.  A glint
@@ -84,6 +93,7 @@ class SampleCollector:
     def __init__(self, chain: Optional[KinematicChain], marker_offset, camera_names, detectors,
                  max_marker_speed=0.0375, dwell_radius=0.001, log=None,
                  board: Optional[BoardTarget] = None, max_pose_gap_s=0.1, min_frames=None,
+                 cameras_on_link=False,
                  max_views_per_dwell=3):
         self.chain = chain
         self.pose_input = chain is None
@@ -97,8 +107,15 @@ class SampleCollector:
         if not max_pose_gap_s > 0:
             raise ValueError(f'max_pose_gap_s must be > 0, got {max_pose_gap_s}')
         # The points whose speed and spread decide stillness and dwells, in the link frame.
-        ref = board.reference_points_in_link() if board is not None else \
-            self.marker_offset[None, :]
+        if cameras_on_link:
+            # The cameras ride on the link: what must be still is the scene in their images.
+            # Points at scene distance around the link stand for it (the target's place in the
+            # link frame changes from view to view).
+            r = CAMERA_ON_LINK_REFERENCE_M
+            ref = np.array([[r, 0.0, 0.0], [0.0, r, 0.0], [0.0, 0.0, r], [-r, -r, -r]])
+        else:
+            ref = (board.reference_points_in_link() if board is not None
+                   else self.marker_offset[None, :])
         if self.pose_input:
             def fk(C):
                 return pose_points(C, ref)

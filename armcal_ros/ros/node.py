@@ -160,7 +160,9 @@ class CalibratorNode(Node):
         v = self.values
         self.settings = settings_from_values(v)
         self.camera_names = list(self.settings.inputs.camera_names)
-        self.base_frame = self.settings.robot.base_frame
+        # The frame the cameras' poses are given in: the arm's link when they ride on it.
+        self.base_frame = (self.settings.robot.marker_link if self.settings.target.eye_in_hand
+                           else self.settings.robot.base_frame)
         self.output_dir = self.settings.outputs.output_dir
         try:
             pipe = build_pipeline(self.settings, log=self._log_input)

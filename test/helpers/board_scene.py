@@ -216,14 +216,19 @@ def check_mount(T_vec, tol_m=2e-3, tol_deg=0.3):
     assert np.degrees(Rotation.from_matrix(dR).magnitude()) < tol_deg
 
 
-def write_capture_folder(root, n=8):
-    """Write the scene as a capture folder: poses.csv, images/sNN_cam.png, camera_info."""
+def write_capture_folder(root, n=8, link_of=link_pose):
+    """
+    Write the scene as a capture folder: poses.csv, images/sNN_cam.png, camera_info.
+
+    ``link_of(T_ct)`` is the link pose that shows the board at camera-from-target ``T_ct``
+    (default: the static camera and the board on the link).
+    """
     os.makedirs(os.path.join(root, 'images'))
     os.makedirs(os.path.join(root, 'camera_info'))
     rows = ['sample,x,y,z,qx,qy,qz,qw']
     for k, T_ct in enumerate(view_targets(n)):
         cv2.imwrite(os.path.join(root, 'images', f's{k:02d}_cam.png'), render(T_ct))
-        rows.append(f'{k},' + ','.join(f'{v:.10f}' for v in pose_vector(link_pose(T_ct))))
+        rows.append(f'{k},' + ','.join(f'{v:.10f}' for v in pose_vector(link_of(T_ct))))
     with open(os.path.join(root, 'poses.csv'), 'w') as f:
         f.write('\n'.join(rows) + '\n')
     write_camera_info(os.path.join(root, 'camera_info', 'cam.yaml'),
