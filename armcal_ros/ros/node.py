@@ -430,7 +430,8 @@ class CalibratorNode(Node):
             self.collector.counts[f'sample_{result.value}'] += 1
             if result.value != 'dropped':
                 self._publish(self.pub_samples, conv.point_stamped_msg(
-                    s.point_nominal, self.base_frame, conv.time_msg(s.stamp_ns)))
+                    s.point_nominal, self.settings.robot.base_frame,
+                    conv.time_msg(s.stamp_ns)))
         if samples:
             self._count_per_camera()
 
@@ -526,7 +527,12 @@ class CalibratorNode(Node):
         cal = self.engine.current
         cams = [] if cal is None else [cal.cameras[c].camera for c in self.camera_names
                                        if c in cal.cameras]
-        pts = np.array([s.point_nominal for s in self.engine.store.samples]).reshape(-1, 3)
+        if self.settings.target.eye_in_hand:
+            # The cameras are in the moving link's frame; the samples in the base: draw only
+            # the cameras (RViz places them with the link through TF).
+            pts = np.zeros((0, 3))
+        else:
+            pts = np.array([s.point_nominal for s in self.engine.store.samples]).reshape(-1, 3)
         self._publish(self.pub_markers, conv.marker_array_msg(
             self.base_frame, self.get_clock().now().to_msg(), pts, cams, self._last_estimated))
 
