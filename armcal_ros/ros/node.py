@@ -456,7 +456,7 @@ class CalibratorNode(Node):
             self._solve_lock.release()
 
     def _on_solve(self, outcome):
-        """Engine callback (solver or service thread): publish, save, commit, log."""
+        """Engine callback (solver or service thread): log, save, publish, commit."""
         try:
             self._handle_outcome(outcome)
         except Exception as exc:  # noqa: B902 - publishing must not kill the solver thread
@@ -477,8 +477,9 @@ class CalibratorNode(Node):
             f'calibration accepted: {cal.model} model, {outcome.n_samples} samples, cost '
             f'{cal.cost:.4g}, {outcome.time_s:.1f} s; RMS '
             + ', '.join(f'{n} {c.rms_px:.3f} px' for n, c in cal.cameras.items()))
-        self._publish_calibration(cal)
+        # Files first: a consumer woken by the new CameraInfo finds them written.
         self._save('after a solve')
+        self._publish_calibration(cal)
         self._commit_to_drivers(cal)
 
     def _publish(self, pub, msg):
