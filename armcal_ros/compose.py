@@ -73,7 +73,7 @@ def build_board(settings: Settings, data_set_target=None,
     if target.tag_corners:
         guess = optional_pose(target.pose_guess or None)
         return None, BoardTarget(tag_corner_points(target.aruco_size), guess,
-                                 target.estimate_mount)
+                                 target.estimate_mount, target.estimate_size)
     if not target.is_board:
         if not target.estimate_mount:
             return None, None

@@ -49,8 +49,9 @@ from armcal_ros.core.results import Calibration, calibration_from_result
 from armcal_ros.core.target import invert, pose_vector
 from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.frontend.store import SampleStore
-from armcal_ros.io.results_files import (CALIBRATION_FILE, load_calibration, read_target_yaml,
-                                         TARGET_FILE, write_calibration, write_target)
+from armcal_ros.io.results_files import (CALIBRATION_FILE, load_calibration,
+                                         read_target_scale, read_target_yaml, TARGET_FILE,
+                                         write_calibration, write_target)
 
 
 @dataclass
@@ -149,6 +150,8 @@ class CalibrationEngine:
         self.T_link_target: Optional[np.ndarray] = (
             None if board is None or board.T_link_target is None else board.T_link_target.copy())
         self.mount_std: Optional[np.ndarray] = None
+        #: The factor of the target's points (a tag of estimated size: size over the guess).
+        self.target_scale = 1.0
 
     # -- inputs --------------------------------------------------------------------------
     def set_image_size(self, camera, width, height):
@@ -359,6 +362,7 @@ class CalibrationEngine:
                        if self._current is not None else None)
             prior, searching = self._prior_for_solve(n)
             seed = None if self.T_link_target is None else self.T_link_target.copy()
+            scale = self.target_scale
             sizes = dict(self.image_sizes)
 
         def refuse(reason):
@@ -382,8 +386,9 @@ class CalibrationEngine:
         solver = self._solver_settings(searching)
         try:
             res = calibrate_board(specs, data, prior, solver, T_link_target=seed,
-                                  mount=MountSettings(estimate=board.estimate_mount),
-                                  initial=initial)
+                                  mount=MountSettings(estimate=board.estimate_mount,
+                                                      estimate_scale=board.estimate_scale),
+                                  initial=initial, scale=scale)
         except ValueError as exc:
             return refuse(f'board solve failed: {exc}')
         result = res.calibration
@@ -395,8 +400,11 @@ class CalibrationEngine:
             with self._lock:
                 self.T_link_target = np.array(res.T_link_target, float)
                 self.mount_std = None if res.mount_std is None else np.array(res.mount_std)
+                self.target_scale = float(res.scale)
             outcome.calibration.hyperparameters['T_link_target'] = pose_vector(
                 res.T_link_target)
+            if board.estimate_scale:
+                outcome.calibration.hyperparameters['target_scale'] = float(res.scale)
         return self._finish(outcome)
 
     def _judge(self, result, n, elapsed, model=None):
@@ -486,10 +494,10 @@ class CalibrationEngine:
             written += write_calibration(directory, cal, self.settings.base_frame)
         board = self.settings.board
         with self._lock:
-            T, std = self.T_link_target, self.mount_std
+            T, std, scale = self.T_link_target, self.mount_std, self.target_scale
         if board is not None and T is not None and cal is not None:
             written.append(write_target(directory, T, std, self.settings.marker_link,
-                                        board.estimate_mount))
+                                        board.estimate_mount, scale))
         return [str(w) for w in written if w]
 
     def load(self, directory):
@@ -533,7 +541,9 @@ class CalibrationEngine:
         board = self.settings.board
         if board is not None and board.estimate_mount and os.path.exists(target_file):
             T = read_target_yaml(target_file)
+            scale = read_target_scale(target_file) if board.estimate_scale else 1.0
             with self._lock:
                 self.T_link_target = T
+                self.target_scale = scale
             said.append('the board\'s mount')
         return 'restored ' + ' and '.join(said) if said else 'nothing to restore'

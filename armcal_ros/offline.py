@@ -308,6 +308,9 @@ def make_report(settings: Settings, engine, outcome, front: FrontEnd, timings):
             T_link_target=None if T is None else pose_vector(T),
             estimated=bool(engine.settings.board.estimate_mount),
             std=(None if engine.mount_std is None else [float(x) for x in engine.mount_std]))
+        if engine.settings.board.estimate_scale:
+            target.update(scale=engine.target_scale,
+                          aruco_size=settings.target.aruco_size * engine.target_scale)
     prior, solver = settings.prior, settings.solver
     return dict(
         input=dict(front.source, marker_type=settings.target.marker_type),

@@ -206,6 +206,9 @@ PARAMS = [
           'estimate the target\'s place on marker_link from the data: a board\'s pose '
           '(T_link_target), or a sphere\'s or tag centre\'s position, seeded at marker_offset '
           '(a guess centimetres off will do; the views must turn the wrist)'),
+    Param('estimate_aruco_size', 'bool', False,
+          'estimate the tag\'s side from the data (the arm\'s poses set the scale), aruco_size '
+          'being a guess within about half its value; needs estimate_marker_offset'),
     Param('eye_in_hand', 'bool', False,
           'the cameras ride on marker_link and look at a static target: marker_offset (a point) '
           'or target_pose_guess (a tag or board) are then its place in base_frame, and the '
@@ -328,6 +331,10 @@ def check_all(values: Dict[str, Any], require_robot_model=True):
         raise ValueError('parameters eye_in_hand and estimate_marker_offset: with the cameras '
                          'on the arm a point target\'s place in base_frame is estimated; set '
                          'estimate_marker_offset (marker_offset is the guess)')
+    if values['estimate_aruco_size'] and not (tag_corners and values['estimate_marker_offset']):
+        raise ValueError('parameter estimate_aruco_size: needs marker_type aruco with '
+                         'aruco_size > 0 (the guess) and estimate_marker_offset (the tag\'s '
+                         'pose is estimated with its size)')
     if tag_corners and values['aruco_id'] < 0:
         raise ValueError('parameters aruco_size and aruco_id: a tag used by its corners '
                          '(aruco_size > 0) needs its aruco_id')

@@ -14,7 +14,7 @@ part           parameters
 ``inputs``     camera_names, image_topics, joint_states_topic, pose_topic, pose_type
 ``robot``      robot_description(_file), base_frame, marker_link, marker_offset
 ``target``     marker_type, charuco_*, aruco_size, target_pose_guess, estimate_marker_offset,
-               eye_in_hand
+               eye_in_hand, estimate_aruco_size
 ``detector``   sphere_*, aruco_*, max_views_per_dwell
 ``front_end``  max_marker_speed, dwell_radius
 ``store``      max_samples, min_sample_spacing
@@ -136,6 +136,8 @@ class TargetSettings:
     aruco_size: float = 0.0
     #: The cameras ride on the marker link and the target is static in the base frame.
     eye_in_hand: bool = False
+    #: Estimate the tag's side (``aruco_size`` is then a guess).
+    estimate_size: bool = False
     #: T_link_target of a board as (x, y, z, qx, qy, qz, qw); empty: unknown.
     pose_guess: Tuple[float, ...] = ()
     estimate_mount: bool = False
@@ -330,7 +332,8 @@ def settings_from_values(values: Dict[str, Any], require_robot_model=True) -> Se
                                 v['charuco_marker_size'], v['charuco_dictionary'],
                                 v['charuco_legacy_pattern']),
             aruco_size=v['aruco_size'], pose_guess=tuple(v['target_pose_guess']),
-            estimate_mount=v['estimate_marker_offset'], eye_in_hand=v['eye_in_hand']),
+            estimate_mount=v['estimate_marker_offset'], eye_in_hand=v['eye_in_hand'],
+            estimate_size=v['estimate_aruco_size']),
         detector=DetectorSettings(v['sphere_min_radius_px'], v['sphere_max_radius_px'],
                                   v['sphere_static_scene'], v['aruco_dictionary'],
                                   None if aruco_id < 0 else aruco_id,

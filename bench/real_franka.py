@@ -41,7 +41,7 @@ from armcal_ros.core.board_calibration import (BoardData, calibrate_board,  # no
                                                CameraSpec, MountSettings)
 from armcal_ros.core.intrinsics_prior import IntrinsicsPrior  # noqa: E402
 from armcal_ros.core.priors import PriorSettings  # noqa: E402
-from armcal_ros.frontend.detectors import ArucoDetector  # noqa: E402
+from armcal_ros.frontend.detectors import ArucoDetector, tag_corner_points  # noqa: E402
 from armcal_ros.io.folder_import import read_capture_folder  # noqa: E402
 
 from _report import machine, table, write_json, write_section  # noqa: E402
@@ -49,6 +49,8 @@ from _report import machine, table, write_json, write_section  # noqa: E402
 DEFAULT_DATA = os.path.normpath(os.path.join(ROOT, '..', 'shared', 'data', 'fairo_franka_3cam'))
 #: The marker's place guessed from a look at the gripper: on the flange's far side, 5 cm out.
 GUESS = (0.05, 0.05, -0.05)
+#: The tag's side guessed (m): a hand-sized tag; the fit estimates it.
+SIZE_GUESS = 0.05
 #: The wrist set's static tag, guessed on the table half a metre in front of the robot.
 WRIST_GUESS = (0.5, 0.0, 0.0)
 
@@ -81,28 +83,39 @@ def cli_calibrate(folder, tag_id, guess, eye_in_hand=False):
     return report, ext
 
 
-def detect(folder):
-    """Return BoardData of the tag centres (one point per view) and the camera names."""
-    det = ArucoDetector('DICT_4X4_50', marker_id=0)
+def detect(folder, mode='centre'):
+    """
+    Return BoardData of the tag id 0 per view and camera, and the camera names.
+
+    ``mode`` 'centre': the tag's centre (one point); 'corner0': its corner 0 (the original
+    tool's point); 'corners': its four corners on a square of side :data:`SIZE_GUESS`.
+    """
+    det = ArucoDetector('DICT_4X4_50', marker_id=0, corners=mode != 'centre')
     cams = folder.cameras
-    view, camera, uv = [], [], []
+    view, camera, corner, uv = [], [], [], []
     for v, s in enumerate(folder.samples):
         for j, c in enumerate(cams):
             path = folder.images[c].get(s)
-            if path is None:
-                continue
-            found = det.detect(cv2.imread(path, cv2.IMREAD_GRAYSCALE))
-            if found:
+            found = [] if path is None else det.detect(cv2.imread(path, cv2.IMREAD_GRAYSCALE))
+            if mode != 'corners':
+                found = found[:1]
+            for d in found:
                 view.append(v)
                 camera.append(j)
-                uv.append(found[0].uv)
-    n = len(view)
-    return BoardData(folder.poses, np.zeros((1, 3)), np.array(view), np.array(camera),
-                     np.zeros(n, np.int64), np.array(uv).reshape(-1, 2)), cams
+                corner.append(d.id if mode == 'corners' else 0)
+                uv.append(d.uv)
+    points = tag_corner_points(SIZE_GUESS) if mode == 'corners' else np.zeros((1, 3))
+    return BoardData(folder.poses, points, np.array(view), np.array(camera),
+                     np.array(corner, np.int64), np.array(uv).reshape(-1, 2)), cams
 
 
 def fit(data, folder, cams, keep_cams=None):
-    """Fit the one-point target on ``data`` for ``keep_cams`` (indices); the result."""
+    """
+    Fit ``data`` for the cameras ``keep_cams`` (indices; default all) with fixed intrinsics.
+
+    A point target starts at :data:`GUESS` on the flange; the tag's corners from hand-eye,
+    their side estimated from :data:`SIZE_GUESS`.
+    """
     keep = list(range(len(cams))) if keep_cams is None else list(keep_cams)
     sel = np.isin(data.camera, keep)
     remap = -np.ones(len(cams), np.int64)
@@ -111,16 +124,22 @@ def fit(data, folder, cams, keep_cams=None):
                     data.corner[sel], data.uv[sel])
     given = {cams[j]: IntrinsicsPrior.from_camera(folder.intrinsics[cams[j]]) for j in keep}
     specs = [CameraSpec(cams[j], 640, 480) for j in keep]
-    seed = np.eye(4)
-    seed[:3, 3] = GUESS
+    point = len(data.points) == 1
+    seed = None
+    if point:
+        seed = np.eye(4)
+        seed[:3, 3] = GUESS
     return calibrate_board(specs, sub, PriorSettings('fixed'),
                            SolverSettings(free_distortion=(), intrinsics=given),
-                           T_link_target=seed, mount=MountSettings(estimate=True))
+                           T_link_target=seed,
+                           mount=MountSettings(estimate=True, estimate_scale=not point))
 
 
-def predict(res, data, cams, keep_cams, v):
-    """Predicted minus detected pixels of view ``v`` in the cameras of ``keep_cams``."""
+def predict(res, data, cams, keep_cams, v, ids=None):
+    """Prediction errors (px) of view ``v`` in the cameras ``keep_cams`` (corners ``ids``)."""
     sel = (data.view == v) & np.isin(data.camera, keep_cams)
+    if ids is not None:
+        sel &= np.isin(data.corner, ids)
     if not sel.any():
         return np.zeros((0,))
     one = BoardData(data.poses, data.points, data.view[sel], data.camera[sel],
@@ -129,23 +148,26 @@ def predict(res, data, cams, keep_cams, v):
     return np.linalg.norm(pred - one.uv, axis=1)
 
 
-def leave_one_pose_out(data, folder, cams):
-    """Return per-camera held-out errors (px) of the joint model and the per-camera one."""
+def leave_one_pose_out(joint_data, alone_data, folder, cams, ids=None):
+    """
+    Return per-camera held-out errors (px): one model of every camera, and each camera alone.
+
+    The joint model is fitted on ``joint_data`` (its errors over the corners ``ids``), the
+    per-camera one on ``alone_data``.
+    """
+    def without(data, v):
+        keep = data.view != v
+        return BoardData(data.poses, data.points, data.view[keep], data.camera[keep],
+                         data.corner[keep], data.uv[keep])
     joint = {c: [] for c in cams}
     alone = {c: [] for c in cams}
-    for v in np.unique(data.view):
-        train = data.view != v
-        d = BoardData(data.poses, data.points, data.view[train], data.camera[train],
-                      data.corner[train], data.uv[train])
-        res = fit(d, folder, cams)
+    for v in np.unique(joint_data.view):
+        res = fit(without(joint_data, v), folder, cams)
         for j, c in enumerate(cams):
-            err = predict(res, data, cams, [j], v)
-            joint[c] += list(err)
-        for j, c in enumerate(cams):
-            if not ((data.view == v) & (data.camera == j)).any():
-                continue
-            r = fit(d, folder, cams, [j])
-            alone[c] += list(predict(r, data, cams, [j], v))
+            joint[c] += list(predict(res, joint_data, cams, [j], v, ids))
+            if ((alone_data.view == v) & (alone_data.camera == j)).any():
+                r = fit(without(alone_data, v), folder, cams, [j])
+                alone[c] += list(predict(r, alone_data, cams, [j], v))
     return joint, alone
 
 
@@ -172,7 +194,14 @@ def main():
                                      guess=WRIST_GUESS, eye_in_hand=True)
     data, cams = detect(folder)
     per_cam = {c: fit(data, folder, cams, [j]) for j, c in enumerate(cams)}
-    joint_lo, alone_lo = leave_one_pose_out(data, folder, cams)
+    joint_lo, alone_lo = leave_one_pose_out(data, data, folder, cams)
+    # The tag as a rigid square of estimated side against the original tool's own model (each
+    # camera alone with its own point at corner 0), both predicting corner 0 of held-out poses.
+    corners, _ = detect(folder, 'corners')
+    corner0, _ = detect(folder, 'corner0')
+    tag = fit(corners, folder, cams)
+    tag_lo, orig_lo = leave_one_pose_out(corners, corner0, folder, cams, ids=[0])
+    tag_all_lo, _ = leave_one_pose_out(corners, corner0, folder, cams)
     rows, raw = [], {}
     for j, c in enumerate(cams):
         r = ref[j]
@@ -203,6 +232,25 @@ def main():
     all_joint = [e for c in cams for e in joint_lo[c]]
     all_alone = [e for c in cams for e in alone_lo[c]]
     rows.append(['all', '', '', '', '', '', f'{rms(all_joint):.2f}', f'{rms(all_alone):.2f}'])
+    crows = []
+    for j, c in enumerate(cams):
+        est = tag.calibration.adjustment.cameras.get(c)
+        tq = est.camera.pose_in_world()
+        dR = Rotation.from_matrix(np.array(ref[j]['camera_base_ori']).T
+                                  @ Rotation.from_quat(tq[1]).as_matrix())
+        dpos = 1000 * float(np.linalg.norm(tq[0] - np.array(ref[j]['camera_base_pos'])))
+        crows.append([c, f'{dpos:.1f}, {np.degrees(dR.magnitude()):.2f}',
+                      f'{est.rms_px:.2f} ({est.n_inliers}/{est.n_observations})',
+                      f'{rms(tag_all_lo[c]):.2f}', f'{rms(tag_lo[c]):.2f}',
+                      f'{rms(orig_lo[c]):.2f}'])
+    crows.append(['all', '', '', f'{rms([e for c in cams for e in tag_all_lo[c]]):.2f}',
+                  f'{rms([e for c in cams for e in tag_lo[c]]):.2f}',
+                  f'{rms([e for c in cams for e in orig_lo[c]]):.2f}'])
+    raw['tag_corners'] = dict(
+        side_m=float(SIZE_GUESS * tag.scale), guess_m=SIZE_GUESS,
+        held_out_corner0=rms([e for c in cams for e in tag_lo[c]]),
+        held_out_all=rms([e for c in cams for e in tag_all_lo[c]]),
+        original_held_out_corner0=rms([e for c in cams for e in orig_lo[c]]))
     tgt = report['target']
     wc = wrist['cameras']['cam0']
     wx = wrist_ext['cameras']['cam0']
@@ -232,6 +280,17 @@ def main():
         + ', '.join(f'{x:.4f}' for x in tgt['T_link_target'][:3]) + ' +/- '
         + ', '.join(f'{x:.4f}' for x in tgt['std'][:3])
         + f'; per camera (mm): {markers}. armcal import + calibrate {t_cli:.1f} s.',
+        '',
+        'The tag as a rigid square of four corners (`aruco_size` a guess of '
+        f'{SIZE_GUESS * 1000:.0f} mm with `estimate_aruco_size`; its side comes out '
+        f'{SIZE_GUESS * tag.scale * 1000:.1f} mm, the same from guesses of 30 and 80 mm) '
+        'against the original tool\'s own model (each camera alone, its own point at corner '
+        '0), both held out one pose at a time and predicting corner 0 in every camera; the '
+        'tag model\'s prediction of all four corners beside it:',
+        '',
+        table(['camera', 'tag vs reference: mm, deg', 'tag RMS px (inliers)',
+               'tag held-out px, 4 corners', 'tag held-out px, corner 0',
+               'original model held-out px, corner 0'], crows),
         '',
         'The wrist set (eye-in-hand: the camera on the flange, tag id 1 static on the table; '
         'the original tool accepts < 2 px and publishes no result for it), `eye_in_hand: true`, '

@@ -100,3 +100,19 @@ def test_a_tag_of_given_size_is_a_rigid_target_with_its_mount_estimated(tmp_path
     assert np.linalg.norm(np.array(T[:3]) - MOUNT[:3, 3]) < 2e-3
     dR = Rotation.from_quat(T[3:]).as_matrix().T @ MOUNT[:3, :3]
     assert np.degrees(Rotation.from_matrix(dR).magnitude()) < 0.5
+
+
+def test_a_tag_of_unknown_side_from_a_guess_30_percent_off(tmp_path):
+    # aruco_size is only a guess; the arm's poses set the scale, so the side is estimated
+    # with the tag's pose on the link.
+    folder = tmp_path / 'captures'
+    write_folder(str(folder), n=12, seed=3)
+    report = import_and_calibrate(folder, tmp_path, marker_type='aruco', aruco_id=TAG_ID,
+                                  aruco_size=0.7 * SIZE, estimate_aruco_size='true',
+                                  estimate_marker_offset='true', noise_model='fixed',
+                                  free_distortion=[], min_samples=5)
+    tgt = report['target']
+    assert abs(tgt['aruco_size'] - SIZE) < 1e-3, tgt
+    assert np.linalg.norm(np.array(tgt['T_link_target'][:3]) - MOUNT[:3, 3]) < 3e-3
+    cam = report['cameras']['cam']
+    assert np.linalg.norm(np.array(cam['translation']) - invert(T_CAM_BASE)[:3, 3]) < 3e-3

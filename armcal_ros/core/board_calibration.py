@@ -110,10 +110,14 @@ class MountSettings:
 
     ``sigma_translation`` (m) and ``sigma_rotation`` (rad) are prior standard deviations of
     the correction of the seed; ``fixed_point_sigma`` (m) is the point sigma that stands for
-    "points exactly at X^ + J dp" under the ``fixed`` model.
+    "points exactly at X^ + J dp" under the ``fixed`` model.  ``estimate_scale`` adds the
+    target's scale (its points are multiplied by it: a tag of unknown side, its size guessed)
+    as a seventh global parameter, prior standard deviation ``sigma_scale`` (relative).
     """
 
     estimate: bool = True
+    estimate_scale: bool = False
+    sigma_scale: float = 0.5
     sigma_translation: float = 0.05
     sigma_rotation: float = np.radians(10.0)
     fixed_point_sigma: float = 1e-6
@@ -122,7 +126,8 @@ class MountSettings:
 
     def validate(self):
         """Raise ValueError naming the first bad setting; return self."""
-        for name in ('sigma_translation', 'sigma_rotation', 'fixed_point_sigma', 'tolerance'):
+        for name in ('sigma_translation', 'sigma_rotation', 'fixed_point_sigma', 'tolerance',
+                     'sigma_scale'):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f'mount {name} must be > 0, got {v}')
@@ -131,8 +136,13 @@ class MountSettings:
         return self
 
     def sigma(self):
-        """Return the (6,) prior sigmas of (t, r)."""
-        return np.array([self.sigma_translation] * 3 + [self.sigma_rotation] * 3)
+        """Return the prior sigmas of (t, r) (6,), and of the scale when it is estimated."""
+        s = [self.sigma_translation] * 3 + [self.sigma_rotation] * 3
+        return np.array(s + ([self.sigma_scale] if self.estimate_scale else []))
+
+    def names(self):
+        """Return the global parameters' names, in the order of :meth:`sigma`."""
+        return list(MOUNT_NAMES) + (['target/scale'] if self.estimate_scale else [])
 
 
 @dataclass
@@ -153,7 +163,8 @@ class BoardCalibrationResult:
     ``calibration`` the final :class:`CalibrationResult` (its points are the (view, corner)
     points ``point_view`` / ``point_corner``); ``T_link_target`` the mount used or estimated,
     ``mount_std`` (6,) standard deviations of its last correction (t in m, r in rad) when
-    estimated; ``rounds`` re-linearisation rounds; ``model`` the prior actually solved.
+    estimated, (7,) with the scale's; ``rounds`` re-linearisation rounds; ``model`` the prior
+    actually solved; ``scale`` the factor of the target's points (1 unless estimated).
     """
 
     calibration: CalibrationResult
@@ -167,6 +178,7 @@ class BoardCalibrationResult:
     rounds: int = 0
     model: str = ''
     stages: List[str] = field(default_factory=list)
+    scale: float = 1.0
 
     @property
     def success(self):
@@ -186,11 +198,12 @@ class BoardCalibrationResult:
         field's prediction there - a held-out view's honest prediction.
         """
         pv, pc, pidx = data.point_table()
-        X = mount_points(data.poses, self.T_link_target, pv, data.points[pc])
+        X = mount_points(data.poses, self.T_link_target, pv, data.points[pc] * self.scale)
         adj = self.calibration.adjustment
         if adj is not None and adj.prior is not None and adj.prior.kind in ('global', 'dense'):
             # The mount correction is already folded into T_link_target: zero design.
-            X = X + adj.predict_offsets(X, np.zeros((len(X), 3, 6)))
+            n_global = 7 if self.mount_std is not None and len(self.mount_std) == 7 else 6
+            X = X + adj.predict_offsets(X, np.zeros((len(X), 3, n_global)))
         out = np.full((len(data), 2), np.nan)
         cams = self.cameras
         for j, name in enumerate(camera_names):
@@ -261,13 +274,14 @@ def _mount_prior(model, prior: PriorSettings, mount: MountSettings):
 def calibrate_board(specs: Sequence[CameraSpec], data: BoardData, prior: PriorSettings = None,
                     settings: SolverSettings = None, T_link_target=None,
                     mount: MountSettings = None, initial: Optional[Dict[str, Camera]] = None,
-                    intrinsics=None, rng=None) -> BoardCalibrationResult:
+                    intrinsics=None, rng=None, scale=1.0) -> BoardCalibrationResult:
     """
     Calibrate ``specs`` from board observations ``data`` (module docstring for the sequence).
 
     ``T_link_target`` (4, 4) seeds (or, without mount estimation, fixes) the mount; None finds
     it by hand-eye.  ``initial`` warm-starts cameras by name (else they are initialised from
-    the board views); ``intrinsics`` maps names to (K, dist) for the view-pose step.
+    the board views); ``intrinsics`` maps names to (K, dist) for the view-pose step.  ``scale``
+    multiplies the target's points (the seed of the scale when ``mount.estimate_scale``).
     Raises ValueError for unusable input (no camera initialised, no mount without estimation).
     """
     prior = (prior or PriorSettings()).validate()
@@ -292,7 +306,8 @@ def calibrate_board(specs: Sequence[CameraSpec], data: BoardData, prior: PriorSe
                              '(marker_offset)')
         hes, init = {}, BoardInit({s.name: 'from the nominal points' for s in specs})
     else:
-        cams_init, hes, init = initialise_board_cameras(specs, data, settings.free_distortion,
+        scaled = replace(data, points=data.points * scale) if scale != 1.0 else data
+        cams_init, hes, init = initialise_board_cameras(specs, scaled, settings.free_distortion,
                                                         intrinsics)
         for name, cam in cams_init.items():
             initial.setdefault(name, cam)
@@ -310,62 +325,74 @@ def calibrate_board(specs: Sequence[CameraSpec], data: BoardData, prior: PriorSe
     obs = Observations(data.camera, pidx, data.uv)
     stages = []
 
-    def solve(model_prior, T, cams, estimate):
-        X = mount_points(data.poses, T, pv, data.points[pc])
+    names = mount.names()
+
+    def solve(model_prior, T, scale, cams, estimate):
+        pts = data.points[pc] * scale
+        X = mount_points(data.poses, T, pv, pts)
         kin = None
         if estimate:
-            kin = KinematicData(mount_jacobian(data.poses, T, pv, data.points[pc]),
-                                list(MOUNT_NAMES), mount.sigma())
+            J = mount_jacobian(data.poses, T, pv, pts)
+            if mount.estimate_scale:
+                # d X^ / d scale = R_base_link R_link_target p (the unscaled point).
+                R = data.poses[pv][:, :3, :3] @ T[:3, :3]
+                J = np.concatenate([J, np.einsum('nij,nj->ni', R, data.points[pc])[:, :, None]],
+                                   axis=2)
+            kin = KinematicData(J, names, mount.sigma())
         res = calibrate(specs, X, obs, model_prior, settings, initial=cams, rng=rng,
                         kinematics=kin)
         return res, X
 
-    def estimate_mount(model_prior, T, cams):
+    def estimate_mount(model_prior, T, scale, cams):
         res, X, std, k = None, None, None, 0
         for k in range(1, mount.max_rounds + 1):
-            res, X = solve(model_prior, T, cams, True)
+            res, X = solve(model_prior, T, scale, cams, True)
             adj = res.adjustment
             if adj is None or adj.kinematic_errors is None:
                 break
-            dp = np.array([adj.kinematic_errors[n] for n in MOUNT_NAMES])
-            std = np.array([adj.kinematic_std[n] for n in MOUNT_NAMES])
-            T = correct_mount(T, dp)
+            dp = np.array([adj.kinematic_errors[n] for n in names])
+            std = np.array([adj.kinematic_std[n] for n in names])
+            T = correct_mount(T, dp[:6])
+            if mount.estimate_scale:
+                scale = scale + float(dp[6])
             cams = {**cams, **res.cameras}
             stages.append(f'{model_prior.model}+mount round {k}: |dt| '
                           f'{np.linalg.norm(dp[:3]) * 1e3:.3f} mm, |dr| '
-                          f'{np.degrees(np.linalg.norm(dp[3:])):.4f} deg')
+                          f'{np.degrees(np.linalg.norm(dp[3:6])):.4f} deg'
+                          + (f', scale {scale:.5f}' if mount.estimate_scale else ''))
             if np.max(np.abs(dp)) < mount.tolerance:
                 break
-        return res, X, T, std, k, cams
+        return res, X, T, scale, std, k, cams
 
     std, rounds, solved = None, 0, prior.model
     if mount.estimate:
         fixed_prior = _mount_prior('fixed', prior, mount)
         T0 = T
-        res, X, T, std, rounds, cams = estimate_mount(fixed_prior, T, initial)
+        res, X, T, scale, std, rounds, cams = estimate_mount(fixed_prior, T, scale, initial)
         if len(data.points) == 1 and np.linalg.norm(T[:3, 3] - T0[:3, 3]) > 1e-3 and \
                 res.adjustment is not None:
             # The cameras started from points at a guess that proved off: start them again
             # from the corrected place and keep whichever solution fits better (the stiff
             # points-on-the-arm problem converges slowly from a poor start).
-            again = estimate_mount(fixed_prior, T, {k: v for k, v in initial.items()})
+            again = estimate_mount(fixed_prior, T, scale, {k: v for k, v in initial.items()})
             if again[0].adjustment is not None and again[0].adjustment.cost < \
                     res.adjustment.cost:
                 stages.append('point marker: cameras restarted at the corrected place')
-                res, X, T, std, r2, cams = again
+                res, X, T, scale, std, r2, cams = again
                 rounds += r2
         if prior.model in ('independent', 'correlated'):
-            res, X, T, std, r2, cams = estimate_mount(_mount_prior(prior.model, prior, mount),
-                                                      T, cams)
+            res, X, T, scale, std, r2, cams = estimate_mount(
+                _mount_prior(prior.model, prior, mount), T, scale, cams)
             rounds += r2
             solved = f'{prior.model}+mount'
         elif prior.model == 'auto':
-            res, X = solve(prior, T, cams, False)
+            res, X = solve(prior, T, scale, cams, False)
             stages.append('auto with the mount of the fixed stage')
         elif prior.model != 'fixed':
             _mount_prior(prior.model, prior, mount)       # raises with the reason
         else:
             solved = 'fixed+mount'
     else:
-        res, X = solve(prior, T, initial, False)
-    return BoardCalibrationResult(res, T, std, init, pv, pc, X, obs, rounds, solved, stages)
+        res, X = solve(prior, T, scale, initial, False)
+    return BoardCalibrationResult(res, T, std, init, pv, pc, X, obs, rounds, solved, stages,
+                                  scale)

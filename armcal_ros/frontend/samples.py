@@ -136,6 +136,8 @@ class BoardTarget:
     points: np.ndarray
     T_link_target: Optional[np.ndarray] = None
     estimate_mount: bool = False
+    #: Estimate the factor of ``points`` too (a tag of unknown side, ``points`` at a guess).
+    estimate_scale: bool = False
 
     def __post_init__(self):
         self.points = np.asarray(self.points, dtype=float)

@@ -58,24 +58,42 @@ def load_calibration(directory) -> Calibration:
                        doc.get('hyperparameters', {}))
 
 
-def target_yaml(T, std, link, estimated):
-    """Return the text of ``target.yaml``: T_link_target and, when estimated, its std."""
+def target_yaml(T, std, link, estimated, scale=1.0):
+    """
+    Return the text of ``target.yaml``: T_link_target and, when estimated, its std.
+
+    ``scale`` (written unless 1) multiplies the target's points (a tag's estimated size over
+    its guess); ``std`` has its standard deviation as a seventh entry then.
+    """
     x = pose_vector(T)
     lines = [f'# T_{link}_target: pose of the target frame in {link}',
              f'estimated: {str(bool(estimated)).lower()}',
              'translation: [' + ', '.join(f'{v:.6f}' for v in x[:3]) + ']',
              'rotation_xyzw: [' + ', '.join(f'{v:.8f}' for v in x[3:]) + ']']
+    if scale != 1.0:
+        lines.append(f'scale: {scale:.6f}')
     if std is not None:
         lines.append('std_translation_m: [' + ', '.join(f'{v:.6f}' for v in std[:3]) + ']')
-        lines.append('std_rotation_rad: [' + ', '.join(f'{v:.6f}' for v in std[3:]) + ']')
+        lines.append('std_rotation_rad: [' + ', '.join(f'{v:.6f}' for v in std[3:6]) + ']')
+        if len(std) > 6:
+            lines.append(f'std_scale: {std[6]:.6f}')
     return '\n'.join(lines) + '\n'
 
 
-def write_target(directory, T, std, link, estimated):
+def write_target(directory, T, std, link, estimated, scale=1.0):
     """Write ``target.yaml`` (atomically); return its path."""
     path = os.path.join(directory, TARGET_FILE)
-    atomic_write_text(path, target_yaml(T, std, link, estimated))
+    atomic_write_text(path, target_yaml(T, std, link, estimated, scale))
     return path
+
+
+def read_target_scale(path):
+    """Return the target's scale from a ``target.yaml`` (1 when it has none)."""
+    try:
+        with open(path) as f:
+            return float((yaml.safe_load(f) or {}).get('scale', 1.0))
+    except (OSError, yaml.YAMLError, TypeError, ValueError, AttributeError) as exc:
+        raise ValueError(f'{path}: cannot read the target scale: {exc}') from exc
 
 
 def read_target_yaml(path):
