@@ -159,11 +159,14 @@ def _bag_intrinsics(bag, topics, settings: Settings):
             raise CalibrateError(f'camera {cam}: intrinsics_mode {mode} without an '
                                  f'intrinsics_files entry needs its CameraInfo on {topic}, '
                                  f'which bag {bag} does not have')
+        messages = iter_raw(bag, [topic])
         try:
-            msg = next(iter_raw(bag, [topic])).deserialize()
+            msg = next(messages).deserialize()
             out[cam] = settings.intrinsics.prior_from(cam, camera_from_camera_info(msg, cam))
         except (DeserializationError, ValueError) as exc:
             raise CalibrateError(f'camera {cam}: CameraInfo on {topic}: {exc}') from exc
+        finally:
+            messages.close()            # the reader is open until the generator ends
     return out
 
 

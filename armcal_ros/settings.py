@@ -19,10 +19,12 @@ part           parameters
 ``front_end``  max_marker_speed, dwell_radius
 ``store``      max_samples, min_sample_spacing
 ``prior``      noise_model, point_sigma, bias_sigma, coherence_length, kernel
-``solver``     pixel_sigma, free_distortion, robust_loss(_scale), outlier_gate_sigmas,
-               intrinsics_mode, intrinsics_files, intrinsics_sigma_px, intrinsics_sigma_dist
+``solver``     pixel_sigma, free_distortion, robust_loss(_scale), outlier_gate_sigmas, and the
+               intrinsics read from intrinsics_files
 ``schedule``   min_samples, solve_period, min_new_samples
 ``outputs``    output_dir, publish_tf, set_camera_info_services, resume
+``intrinsics`` intrinsics_mode, intrinsics_sigma_px, intrinsics_sigma_dist, the CameraInfo
+               topics of the given cameras without a file
 =============  ===========================================================================
 """
 
@@ -35,7 +37,7 @@ import yaml
 from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
 from armcal_ros.core.priors import PriorSettings
-from armcal_ros.io.calib_files import camera_from_info_dict
+from armcal_ros.io.calib_files import read_camera_info
 from armcal_ros.io.message_fields import camera_info_topic
 from armcal_ros.params import check_all, check_value, default_output_dir, load_params_file
 
@@ -284,21 +286,22 @@ def given_intrinsics(values) -> Dict[str, IntrinsicsPrior]:
         if not path:
             continue
         try:
-            with open(path, encoding='utf-8') as f:
-                doc = yaml.safe_load(f)
-            if isinstance(doc, dict):
-                doc = dict(doc, camera_name=cam)
-            info = camera_from_info_dict(doc, source=path)
+            info = read_camera_info(path, cam)
         except (OSError, yaml.YAMLError, ValueError) as exc:
             raise ValueError(f'parameter intrinsics_files: camera {cam}: {exc}') from exc
         out[cam] = part.prior_from(cam, info)
     return out
 
 
+def with_solver_intrinsics(solver: SolverSettings,
+                           given: Dict[str, IntrinsicsPrior]) -> SolverSettings:
+    """Return ``solver`` with more cameras' intrinsics given (e.g. from CameraInfo)."""
+    return replace(solver, intrinsics={**solver.intrinsics, **given})
+
+
 def with_given_intrinsics(settings: Settings, given: Dict[str, IntrinsicsPrior]) -> Settings:
     """Return ``settings`` with more cameras' intrinsics given (e.g. from CameraInfo)."""
-    solver = replace(settings.solver, intrinsics={**settings.solver.intrinsics, **given})
-    return replace(settings, solver=solver)
+    return replace(settings, solver=with_solver_intrinsics(settings.solver, given))
 
 
 def _named(build):

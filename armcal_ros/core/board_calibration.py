@@ -202,7 +202,7 @@ class BoardCalibrationResult:
         adj = self.calibration.adjustment
         if adj is not None and adj.prior is not None and adj.prior.kind in ('global', 'dense'):
             # The mount correction is already folded into T_link_target: zero design.
-            n_global = 7 if self.mount_std is not None and len(self.mount_std) == 7 else 6
+            n_global = 6 if self.mount_std is None else len(self.mount_std)
             X = X + adj.predict_offsets(X, np.zeros((len(X), 3, n_global)))
         out = np.full((len(data), 2), np.nan)
         cams = self.cameras
@@ -295,7 +295,7 @@ def calibrate_board(specs: Sequence[CameraSpec], data: BoardData, prior: PriorSe
     initial = dict(initial or {})
     if intrinsics is None and settings.intrinsics:
         # Given intrinsics (SolverSettings.intrinsics) also give the view poses by PnP.
-        intrinsics = {k: (p.K(), np.asarray(p.dist, float))
+        intrinsics = {k: (p.K, np.asarray(p.dist, float))
                       for k, p in settings.intrinsics.items()}
     if len(data.points) == 1:
         # A point marker: a view has no pose of its own to start from, so the cameras start
@@ -374,7 +374,7 @@ def calibrate_board(specs: Sequence[CameraSpec], data: BoardData, prior: PriorSe
             # The cameras started from points at a guess that proved off: start them again
             # from the corrected place and keep whichever solution fits better (the stiff
             # points-on-the-arm problem converges slowly from a poor start).
-            again = estimate_mount(fixed_prior, T, scale, {k: v for k, v in initial.items()})
+            again = estimate_mount(fixed_prior, T, scale, dict(initial))
             if again[0].adjustment is not None and again[0].adjustment.cost < \
                     res.adjustment.cost:
                 stages.append('point marker: cameras restarted at the corrected place')

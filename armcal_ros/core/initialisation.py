@@ -211,7 +211,7 @@ def initialise_with_intrinsics(name, width, height, X, uv, given: IntrinsicsPrio
                           'given intrinsics')
     if inlier_px is None:
         inlier_px = 0.02 * float(np.hypot(width, height))
-    K, dist = given.K(), np.asarray(given.dist, float)
+    K, dist = given.K, np.asarray(given.dist, float)
     ok, rvec, tvec, inl = cv2.solvePnPRansac(
         X.reshape(-1, 1, 3), uv.reshape(-1, 1, 2), K, dist, iterationsCount=500,
         reprojectionError=float(inlier_px), confidence=0.999, flags=cv2.SOLVEPNP_EPNP)

@@ -94,6 +94,7 @@ class IntrinsicsPrior:
         out.dist = np.asarray(self.dist, float).copy()
         return out
 
+    @property
     def K(self):
         """Return the 3x3 camera matrix."""
         fx, fy, cx, cy = (float(v) for v in self.intrinsics)

@@ -121,10 +121,17 @@ def camera_from_info_dict(doc, source='camera_info'):
                   K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist)
 
 
-def read_camera_info(path):
-    """Read a camera_info YAML file into a :class:`Camera` with identity pose."""
+def read_camera_info(path, name=None):
+    """
+    Read a camera_info YAML file into a :class:`Camera` with identity pose.
+
+    ``name`` replaces the file's ``camera_name`` (a driver's name, '/' included, is then not
+    checked: only K, D and the image size are wanted).
+    """
     with open(path, encoding='utf-8') as f:
         doc = yaml.safe_load(f)
+    if name is not None and isinstance(doc, dict):
+        doc = dict(doc, camera_name=name)
     return camera_from_info_dict(doc, source=os.fspath(path))
 
 

@@ -64,7 +64,8 @@ from armcal_ros.ros import conversions as conv
 from armcal_ros.ros.event_queue import EventQueue
 from armcal_ros.ros.raw_message import LazyMessage
 from armcal_ros.ros.status import diagnostic_statuses, NodeState
-from armcal_ros.settings import settings_from_values, with_given_intrinsics
+from armcal_ros.settings import (settings_from_values, with_given_intrinsics,
+                                 with_solver_intrinsics)
 
 #: Parameters that may change while the node runs (they apply from the next solve).
 RUNTIME_PARAMETERS = frozenset([
@@ -156,9 +157,8 @@ class CalibratorNode(Node):
         self._closing = False
         self._pub_lock = threading.Lock()
         self._solve_lock = threading.Lock()
-        self.values = self._declare_and_check(argv)
+        self.values, self.settings = self._declare_and_check(argv)
         v = self.values
-        self.settings = settings_from_values(v)
         self.camera_names = list(self.settings.inputs.camera_names)
         # The frame the cameras' poses are given in: the arm's link when they ride on it.
         self.base_frame = (self.settings.robot.marker_link if self.settings.target.eye_in_hand
@@ -285,10 +285,9 @@ class CalibratorNode(Node):
         # Relative file names: beside a --params-file that has them, else the working directory.
         resolve_paths(values, _params_file_dirs(argv) + [os.getcwd()])
         try:
-            settings_from_values(values)
+            return values, settings_from_values(values)
         except ValueError as exc:
             raise ParameterError(str(exc)) from exc
-        return values
 
     def _check_runtime_parameters(self, params):
         new = dict(self.values)
@@ -330,9 +329,8 @@ class CalibratorNode(Node):
             topic = self._info_pending.pop(camera)
             self._info_intrinsics[camera] = given
             self.engine.settings = dataclasses.replace(
-                self.engine.settings, solver=dataclasses.replace(
-                    self.engine.settings.solver,
-                    intrinsics={**self.engine.settings.solver.intrinsics, camera: given}))
+                self.engine.settings, solver=with_solver_intrinsics(self.engine.settings.solver,
+                                                                    {camera: given}))
             self.get_logger().info(f'{camera}: intrinsics given by CameraInfo on {topic} '
                                    f'({given.mode}: fx {info.fx:.2f}, fy {info.fy:.2f}, '
                                    f'cx {info.cx:.2f}, cy {info.cy:.2f})')
