@@ -13,7 +13,8 @@ from typing import Callable, Optional, Tuple
 
 import numpy as np
 
-from armcal_ros.core.kinematic_prior import KinematicData
+from armcal_ros.core.kinematic_prior import KinematicData, kinematic_sigmas
+from armcal_ros.core.priors import KINEMATIC_MODELS
 from armcal_ros.core.target import optional_pose
 from armcal_ros.engine import CalibrationEngine, EngineSettings
 from armcal_ros.frontend.collector import SampleCollector
@@ -26,6 +27,11 @@ from armcal_ros.settings import Settings
 
 #: Two samples closer than this (m) are the same place (merged), whatever min_sample_spacing.
 SAME_POINT_TOLERANCE = 0.0005
+#: Prior standard deviation (m, per axis) of a point marker's place about its guess when a
+#: kinematic model estimates it: a guess read off a drawing or a ruler is good to centimetres,
+#: so a decimetre leaves the place to the data (the tip translation enters the marker's
+#: position linearly, so a wide prior costs no linearisation error).
+PLACE_GUESS_SIGMA = 0.1
 
 
 @dataclass
@@ -63,7 +69,9 @@ def build_board(settings: Settings, data_set_target=None,
     A tag of given ``aruco_size`` is a four-corner target (None, BoardTarget) on the link at
     ``target_pose_guess`` (found by hand-eye when empty and estimated).  A point marker
     (sphere, tag centre) with ``estimate_marker_offset`` is a one-point target (None,
-    BoardTarget) seeded at ``marker_offset``: the board path estimates its place.
+    BoardTarget) seeded at ``marker_offset``: the board path estimates its place - except
+    under a kinematic model, whose marker-mount errors estimate the place on the point path
+    (:func:`build_engine`), so it stays a point marker (None, None).
 
     ``data_set_target`` (rows, cols, square_size, marker_size, dictionary) completes the
     ``charuco_*`` parameters from a data set's own description; ``data_set_guess`` (4, 4) seeds
@@ -75,7 +83,7 @@ def build_board(settings: Settings, data_set_target=None,
         return None, BoardTarget(tag_corner_points(target.aruco_size), guess,
                                  target.estimate_mount, target.estimate_size)
     if not target.is_board:
-        if not target.estimate_mount:
+        if not target.estimate_mount or settings.prior.model in KINEMATIC_MODELS:
             return None, None
         # A point marker whose place on the link is estimated: a one-point rigid target,
         # seeded at marker_offset (its orientation is not observable and stays as given).
@@ -121,6 +129,7 @@ def engine_settings(settings: Settings, board: Optional[BoardTarget] = None) -> 
     """Return the engine's settings (also used when the node's parameters change at runtime)."""
     s = settings.schedule
     robot, eih = settings.robot, settings.target.eye_in_hand
+    guess = (tuple(robot.marker_offset) if _place_by_kinematics(settings) else None)
     # With the cameras on the arm their poses are in the link's frame, the target's in the base.
     return EngineSettings(list(settings.inputs.camera_names), settings.prior, settings.solver,
                           min_samples=s.min_samples, solve_period_s=s.solve_period_s,
@@ -128,7 +137,13 @@ def engine_settings(settings: Settings, board: Optional[BoardTarget] = None) -> 
                           base_frame=robot.marker_link if eih else robot.base_frame,
                           board=board,
                           marker_link=robot.base_frame if eih else robot.marker_link,
-                          eye_in_hand=eih).validate()
+                          eye_in_hand=eih, point_place_guess=guess).validate()
+
+
+def _place_by_kinematics(settings: Settings) -> bool:
+    """Whether a point marker's place is estimated by a kinematic model's tip errors."""
+    t = settings.target
+    return t.estimate_mount and not t.is_board and settings.prior.model in KINEMATIC_MODELS
 
 
 def build_store(settings: Settings, chain: Optional[KinematicChain]) -> SampleStore:
@@ -152,9 +167,11 @@ def build_engine(settings: Settings, chain: Optional[KinematicChain],
     if chain is None or board is not None:
         return CalibrationEngine(engine_s, store)
     offset = np.asarray(settings.robot.marker_offset, float)
+    sigma = (kinematic_sigmas(chain.error_names, {'tip_translation': PLACE_GUESS_SIGMA})
+             if _place_by_kinematics(settings) else None)
 
-    def kinematics(Q):
-        return KinematicData(chain.jacobian_errors(Q, offset), chain.error_names)
+    def kinematics(Q, place=offset):
+        return KinematicData(chain.jacobian_errors(Q, place), chain.error_names, sigma)
     return CalibrationEngine(engine_s, store, kinematics_fn=kinematics)
 
 

@@ -34,7 +34,7 @@ import os
 import threading
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Dict, List, Optional
+from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -43,7 +43,7 @@ from armcal_ros.core.adjustment import Observations, SolverSettings
 from armcal_ros.core.board_calibration import BoardData, calibrate_board, MountSettings
 from armcal_ros.core.calibration import calibrate, CalibrationResult, CameraSpec
 from armcal_ros.core.image_noise import pooled_pixel_sigma
-from armcal_ros.core.kinematic_prior import KinematicData
+from armcal_ros.core.kinematic_prior import KinematicData, tip_place
 from armcal_ros.core.priors import KINEMATIC_MODELS, PriorSettings
 from armcal_ros.core.results import Calibration, calibration_from_result
 from armcal_ros.core.target import invert, pose_vector
@@ -74,6 +74,9 @@ class EngineSettings:
     #: The cameras ride on the marker link, the board target is static in ``base_frame``: the
     #: solve swaps the roles (module docstring) and the cameras come out in ``marker_link``.
     eye_in_hand: bool = False
+    #: A point marker placed by a kinematic model: the guess (m, on ``marker_link``) the
+    #: samples' points were computed at; the tip errors' translation is the place's correction.
+    point_place_guess: Optional[Tuple[float, float, float]] = None
 
     def validate(self):
         """Raise ValueError naming the first bad setting; return self."""
@@ -97,6 +100,14 @@ class EngineSettings:
                                  'board target (the board solver\'s global parameters are its '
                                  'mount on the link, not the arm\'s kinematic errors); use '
                                  'fixed, independent, correlated or auto')
+        if self.point_place_guess is not None:
+            if self.board is not None or self.prior.model not in KINEMATIC_MODELS:
+                raise ValueError('point_place_guess needs point samples and a kinematic model '
+                                 f'(got model {self.prior.model}, board '
+                                 f'{self.board is not None})')
+            if np.shape(self.point_place_guess) != (3,):
+                raise ValueError(f'point_place_guess must have shape (3,), got '
+                                 f'{np.shape(self.point_place_guess)}')
         return self
 
 
@@ -209,15 +220,64 @@ class CalibrationEngine:
                                f'(min_new_samples {self.settings.min_new_samples})')
             return True, 'due'
 
-    def _kinematics(self, arrays):
-        """Return the KinematicData of the samples in ``arrays`` (None without joint angles)."""
+    def _kinematics(self, arrays, place=None):
+        """
+        Return the KinematicData of the samples in ``arrays`` (None without joint angles).
+
+        ``place`` (3,) evaluates it for a marker there on the link instead of at the guess
+        (a point marker placed by a kinematic model).
+        """
         if self.kinematics_fn is None or len(arrays.points) == 0:
             return None
         by_id = {s.id: s for s in self.store.samples}
         qs = [by_id[i].q for i in arrays.sample_ids]
         if any(q is None for q in qs):
             return None
-        return self.kinematics_fn(np.asarray(qs, float))
+        Q = np.asarray(qs, float)
+        return self.kinematics_fn(Q) if place is None else self.kinematics_fn(Q, place)
+
+    def _points_at_place(self, arrays, kin, specs, obs, initial, solver):
+        """
+        Points, KinematicData and initial cameras of a point marker placed by a kinematic model.
+
+        The samples' points X^_i were computed at the guess m0.  With R_i the marker link's
+        rotation (the tip translation's Jacobian columns), the marker at m is exactly
+        X_i = X^_i + R_i (m - m0).  The kinematic solve starts at the last accepted place; on a
+        first solve the place is first found by the ``fixed`` model with a one-point target
+        (:func:`calibrate_board`, which starts the cameras again once the guess proves off):
+        cameras started by DLT from points centimetres off can fail outright.  Returns
+        (points, kin, place, initial, stage note).
+        """
+        m0 = np.asarray(self.settings.point_place_guess, float)
+        cols = [list(kin.names).index(f'tip/t{a}') for a in 'xyz']
+        R = kin.jacobian[:, :, cols]
+        with self._lock:
+            known = None if self.T_link_target is None else self.T_link_target[:3, 3].copy()
+        note = 'place: the last accepted estimate'
+        if known is None:
+            poses = np.tile(np.eye(4), (len(R), 1, 1))
+            poses[:, :3, :3] = R
+            poses[:, :3, 3] = arrays.points - R @ m0
+            seed = np.eye(4)
+            seed[:3, 3] = m0
+            data = BoardData(poses, np.zeros((1, 3)), obs.point, obs.camera,
+                             np.zeros(len(obs.point), np.int64), obs.uv)
+            try:
+                first = calibrate_board(specs, data, PriorSettings('fixed'), solver,
+                                        T_link_target=seed, mount=MountSettings(estimate=True),
+                                        initial=initial)
+            except ValueError:
+                first = None
+            adj = None if first is None else first.calibration.adjustment
+            if adj is None or not first.calibration.success:
+                return arrays.points, kin, m0, initial, 'place: the guess (fixed stage failed)'
+            known = first.T_link_target[:3, 3]
+            initial = {**(initial or {}),
+                       **{k: c.camera for k, c in adj.cameras.items() if c.camera is not None}}
+            note = (f'place: fixed stage moved the guess by '
+                    f'{1e3 * np.linalg.norm(known - m0):.1f} mm')
+        points = arrays.points + R @ (known - m0)
+        return points, self._kinematics(arrays, known), known, initial, note
 
     def _prior_for_solve(self, n_samples):
         """
@@ -295,15 +355,28 @@ class CalibrationEngine:
                                                        arrays.n_frames[sel])
         specs_kept = [specs[j] for j in keep]
         solver = self._solver_settings(searching)
-        result = calibrate(specs_kept, arrays.points, obs, prior, solver,
-                           initial=initial, **kw)
+        points, place, note = arrays.points, None, None
+        if self.settings.point_place_guess is not None:
+            points, kin, place, initial, note = self._points_at_place(
+                arrays, kin, specs_kept, obs, initial, solver)
+            kw['kinematics'] = kin
+        result = calibrate(specs_kept, points, obs, prior, solver, initial=initial, **kw)
         if (result.adjustment is None or not np.all(np.isfinite(result.adjustment.covariance))) \
                 and initial is not None:
             # A warm start that failed may have been poisoned: try once from scratch.
-            result = calibrate(specs_kept, arrays.points, obs, prior, solver, **kw)
+            result = calibrate(specs_kept, points, obs, prior, solver, **kw)
         if searching:
             self._remember_auto_choice(result, n)
         outcome = self._judge(result, n, time.perf_counter() - t0)
+        if outcome.accepted and place is not None:
+            place = tip_place(result.adjustment, place)
+            if place is not None:
+                T = np.eye(4)
+                T[:3, 3] = place[0]
+                with self._lock:
+                    self.T_link_target, self.mount_std = T, place[1]
+                outcome.calibration.hyperparameters['T_link_target'] = pose_vector(T)
+                outcome.calibration.hyperparameters['place_stage'] = note
         return self._finish(outcome)
 
     def _solver_settings(self, searching):
@@ -495,9 +568,11 @@ class CalibrationEngine:
         board = self.settings.board
         with self._lock:
             T, std, scale = self.T_link_target, self.mount_std, self.target_scale
-        if board is not None and T is not None and cal is not None:
+        estimated = (board.estimate_mount if board is not None
+                     else self.settings.point_place_guess is not None)
+        if (board is not None or estimated) and T is not None and cal is not None:
             written.append(write_target(directory, T, std, self.settings.marker_link,
-                                        board.estimate_mount, scale))
+                                        estimated, scale))
         return [str(w) for w in written if w]
 
     def load(self, directory):
@@ -539,11 +614,14 @@ class CalibrationEngine:
                         f'{cal.n_samples} samples)')
         target_file = os.path.join(directory, TARGET_FILE)
         board = self.settings.board
-        if board is not None and board.estimate_mount and os.path.exists(target_file):
+        estimated = (board.estimate_mount if board is not None
+                     else self.settings.point_place_guess is not None)
+        if estimated and os.path.exists(target_file):
             T = read_target_yaml(target_file)
-            scale = read_target_scale(target_file) if board.estimate_scale else 1.0
+            scale = (read_target_scale(target_file)
+                     if board is not None and board.estimate_scale else 1.0)
             with self._lock:
                 self.T_link_target = T
                 self.target_scale = scale
-            said.append('the board\'s mount')
+            said.append('the target\'s place')
         return 'restored ' + ' and '.join(said) if said else 'nothing to restore'

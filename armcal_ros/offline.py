@@ -305,13 +305,14 @@ def make_report(settings: Settings, engine, outcome, front: FrontEnd, timings):
                                   message=(r.message if r is not None else
                                            'no usable images'))
     target = None
-    if engine.settings.board is not None:
+    board = engine.settings.board
+    if board is not None or engine.settings.point_place_guess is not None:
         T = engine.T_link_target
         target = dict(
             T_link_target=None if T is None else pose_vector(T),
-            estimated=bool(engine.settings.board.estimate_mount),
+            estimated=bool(board is None or board.estimate_mount),
             std=(None if engine.mount_std is None else [float(x) for x in engine.mount_std]))
-        if engine.settings.board.estimate_scale:
+        if board is not None and board.estimate_scale:
             target.update(scale=engine.target_scale,
                           aruco_size=settings.target.aruco_size * engine.target_scale)
     prior, solver = settings.prior, settings.solver

@@ -338,11 +338,6 @@ def check_all(values: Dict[str, Any], require_robot_model=True):
     if tag_corners and values['aruco_id'] < 0:
         raise ValueError('parameters aruco_size and aruco_id: a tag used by its corners '
                          '(aruco_size > 0) needs its aruco_id')
-    if model in KINEMATIC_MODELS and values['estimate_marker_offset']:
-        raise ValueError(f'parameters noise_model and estimate_marker_offset: noise_model '
-                         f'{model} already estimates small marker-mount errors with the arm\'s '
-                         'kinematic errors; estimate_marker_offset (a place centimetres off) '
-                         'works with fixed, independent, correlated or auto')
     modes, files = values['intrinsics_mode'], values['intrinsics_files']
     if len(modes) not in (0, 1, len(cams)):
         raise ValueError(f'parameter intrinsics_mode must be empty, one mode, or one per camera '

@@ -146,3 +146,33 @@ def test_default_sigmas_by_parameter_kind():
     d = DEFAULT_KINEMATIC_SCALES
     assert np.allclose(sig, [d['offset'], d['translation'], d['rotation'],
                              d['tip_translation'], d['tip_rotation'], d['prismatic_offset']])
+
+
+def test_tip_place_is_the_moved_guess_with_its_propagated_std():
+    from types import SimpleNamespace
+
+    from scipy.spatial.transform import Rotation
+
+    from armcal_ros.core.kinematic_prior import tip_place, TIP_BLOCK
+    names = ['joint_1/offset'] + list(TIP_BLOCK)
+    sigma = kinematic_sigmas(names, {'tip_translation': 0.1})
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(7, 7))
+    cov_g = 1e-3 * (A @ A.T + 7 * np.eye(7))          # whitened posterior covariance
+    g = np.array([0.3, 0.2, -0.1, 0.05, 1.0, -2.0, 0.5])
+    dp = g * sigma
+    result = SimpleNamespace(
+        prior=SimpleNamespace(kinematics=SimpleNamespace(names=names, sigma=sigma),
+                              global_slices={'kinematic': slice(2, 9)}),
+        prior_settings=SimpleNamespace(kinematic_scale=1.0),
+        kinematic_errors=dict(zip(names, dp)),
+        global_covariance=np.pad(cov_g, ((2, 0), (2, 0))) + np.diag([1, 1] + [0] * 7))
+    m0 = np.array([0.05, -0.02, 0.1])
+    place, std = tip_place(result, m0)
+    np.testing.assert_allclose(place, Rotation.from_rotvec(dp[4:]).apply(m0) + dp[1:4])
+    # Monte Carlo through the exact map p = Exp(r) m0 + t.
+    draws = rng.multivariate_normal(g, cov_g, 20000) * sigma
+    p = Rotation.from_rotvec(draws[:, 4:]).apply(m0) + draws[:, 1:4]
+    np.testing.assert_allclose(std, p.std(axis=0), rtol=0.03)
+    result.prior.kinematics.names = names[:4]
+    assert tip_place(result, m0) is None

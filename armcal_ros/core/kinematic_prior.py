@@ -45,6 +45,7 @@ from dataclasses import dataclass
 from typing import Dict, Optional, Sequence
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from armcal_ros.core.geometry import skew
 
@@ -234,3 +235,34 @@ def base_motion_gauge(jacobian, points, sigma, rtol: float = 1e-8) -> BaseMotion
     _, sv, vt = np.linalg.svd(A, full_matrices=True)
     rank = int(np.count_nonzero(sv > rtol * sv[0])) if sv.size and sv[0] > 0 else 0
     return BaseMotionGauge(vt[rank:].T.copy(), sig, sv / np.sqrt(m), rank)
+
+
+TIP_BLOCK = ('tip/tx', 'tip/ty', 'tip/tz', 'tip/rx', 'tip/ry', 'tip/rz')
+
+
+def tip_place(result, guess):
+    """
+    Return (place (3,), std (3,)) of a point marker from an adjustment's tip errors, or None.
+
+    With the marker's nominal points computed at ``guess`` m0 on the tip link, the tip error
+    D_tip = [Exp(r) | t] moves it to p = Exp(r) m0 + t (module docstring of
+    :mod:`armcal_ros.robot.kinematics`).  Its covariance is J S J^T with J = [I, -[p - t]x]
+    and S the posterior covariance of (t, r): the whitened global block scaled by the prior
+    standard deviations.  ``result`` is an adjustment result with a kinematic prior; None when
+    it has no tip block (a chain built without tip errors) or no global covariance.
+    """
+    names = list(getattr(result.prior.kinematics, 'names', []) if result.prior is not None
+                 and result.prior.kinematics is not None else [])
+    if result.global_covariance is None or not all(n in names for n in TIP_BLOCK):
+        return None
+    m0 = np.asarray(guess, float).reshape(3)
+    sl = result.prior.global_slices['kinematic']
+    sig = result.prior.kinematics.sigma * result.prior_settings.kinematic_scale
+    cols = [names.index(n) for n in TIP_BLOCK]
+    dp = np.array([result.kinematic_errors[n] for n in TIP_BLOCK])
+    cov_g = result.global_covariance[sl, sl][np.ix_(cols, cols)]
+    S = cov_g * np.outer(sig[cols], sig[cols])
+    rotated = Rotation.from_rotvec(dp[3:]).apply(m0)
+    J = np.hstack([np.eye(3), -skew(rotated)])
+    std = np.sqrt(np.maximum(np.diag(J @ S @ J.T), 0.0))
+    return rotated + dp[:3], std

@@ -74,7 +74,9 @@ def target_yaml(T, std, link, estimated, scale=1.0):
         lines.append(f'scale: {scale:.6f}')
     if std is not None:
         lines.append('std_translation_m: [' + ', '.join(f'{v:.6f}' for v in std[:3]) + ']')
-        lines.append('std_rotation_rad: [' + ', '.join(f'{v:.6f}' for v in std[3:6]) + ']')
+        if len(std) > 3:     # a point marker's place has no orientation
+            lines.append('std_rotation_rad: [' + ', '.join(f'{v:.6f}' for v in std[3:6])
+                         + ']')
         if len(std) > 6:
             lines.append(f'std_scale: {std[6]:.6f}')
     return '\n'.join(lines) + '\n'
