@@ -33,7 +33,6 @@ bench: $(STAMP)
 	$(PY) bench/cells.py
 	$(PY) bench/node.py
 	$(PY) bench/real_data.py
-	$(PY) bench/real_franka.py
 
 clean:
 	rm -rf $(VENV) build install log *.egg-info

@@ -422,7 +422,12 @@ def resolve_paths(values, directories):
         values[name] = [resolve(x) for x in v] if isinstance(v, list) else resolve(v)
 
 
-def default_output_dir():
-    """Return $ROS_HOME/armcal (ROS_HOME defaulting to ~/.ros)."""
+def default_output_dir(node_name=NODE_NAME):
+    """
+    Return $ROS_HOME/<node_name> (ROS_HOME defaulting to ~/.ros).
+
+    Per node name, so that two calibrators of one cell (static cameras and cameras on the arm)
+    never share a samples file.
+    """
     home = os.environ.get('ROS_HOME') or os.path.join(os.path.expanduser('~'), '.ros')
-    return os.path.join(home, 'armcal')
+    return os.path.join(home, node_name)

@@ -39,7 +39,8 @@ from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
 from armcal_ros.core.priors import PriorSettings
 from armcal_ros.io.calib_files import read_camera_info
 from armcal_ros.io.message_fields import camera_info_topic
-from armcal_ros.params import check_all, check_value, default_output_dir, load_params_file
+from armcal_ros.params import (check_all, check_value, default_output_dir, load_params_file,
+                               NODE_NAME)
 
 
 @dataclass(frozen=True)
@@ -312,14 +313,15 @@ def _named(build):
         raise ValueError(text if text.startswith('parameter') else f'parameter {text}') from exc
 
 
-def settings_from_values(values: Dict[str, Any], require_robot_model=True) -> Settings:
+def settings_from_values(values: Dict[str, Any], require_robot_model=True,
+                         node_name=NODE_NAME) -> Settings:
     """
     Check a full dictionary of parameter values and return the typed :class:`Settings`.
 
     Every value is checked again (:func:`~armcal_ros.params.check_value`), then the rules
     between parameters (:func:`~armcal_ros.params.check_all`; ``require_robot_model`` False
-    when the arm's poses are measured elsewhere, e.g. a robot_cal_tools folder).  Raises
-    ValueError naming the parameter.
+    when the arm's poses are measured elsewhere, e.g. a robot_cal_tools folder; ``node_name``
+    names the default output directory).  Raises ValueError naming the parameter.
     """
     v = {k: check_value(k, x) for k, x in values.items()}
     check_all(v, require_robot_model)
@@ -346,7 +348,7 @@ def settings_from_values(values: Dict[str, Any], require_robot_model=True) -> Se
         prior=prior_settings(v),
         solver=solver_settings(v),
         schedule=ScheduleSettings(v['min_samples'], v['solve_period'], v['min_new_samples']),
-        outputs=OutputSettings(v['output_dir'] or default_output_dir(), v['publish_tf'],
+        outputs=OutputSettings(v['output_dir'] or default_output_dir(node_name), v['publish_tf'],
                                tuple(v['set_camera_info_services']), v['resume']),
         intrinsics=intrinsics_settings(v))
 

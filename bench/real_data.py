@@ -13,9 +13,12 @@ with T_tool0_target estimated (found by hand-eye, or seeded from ``pose_guesses.
   from its flange pose (and, for correlated, the fitted field there) - the reprojection error
   a new image would see, the honest accuracy figure on real data.
 
+The same run then measures the fairo Franka set (``--franka-data``; three static cameras and
+a wrist camera, an ArUco tag): ``bench/real_franka.py`` says what, and writes its own section.
+
 Usage: python bench/real_data.py [--data DIR] [--fixture] [--no-loo] [--write-fixture]
-Prints the tables, writes docs/bench/real_data.json and the real_data section of
-docs/BENCHMARKS.md.
+[--franka-data DIR | --no-franka].  Prints the tables, writes docs/bench/real_data.json and
+the real_data section of docs/BENCHMARKS.md (and the real_franka ones).
 """
 
 import argparse
@@ -37,6 +40,7 @@ from armcal_ros.io.rct_import import (board_data, detect_views,  # noqa: E402
                                       load_rct_folder, load_views, save_views)
 
 from _report import machine, table, write_json, write_section  # noqa: E402
+import real_franka  # noqa: E402
 
 DEFAULT_DATA = os.path.normpath(os.path.join(ROOT, '..', 'shared', 'data',
                                              'rct_test_set_charuco'))
@@ -120,6 +124,9 @@ def main():
     p.add_argument('--no-loo', action='store_true', help='skip leave-one-image-out')
     p.add_argument('--write-fixture', action='store_true',
                    help='rewrite test/data/rct_charuco/corners.json from the detections')
+    p.add_argument('--franka-data', default=real_franka.DEFAULT_DATA,
+                   help='the fairo Franka set (bench/real_franka.py)')
+    p.add_argument('--no-franka', action='store_true', help='skip the Franka set')
     args = p.parse_args()
     if not args.fixture and not os.path.isdir(args.data):
         sys.exit(f'{args.data} not found (use --fixture for the committed corners)')
@@ -222,6 +229,8 @@ def main():
     write_json('real_data', dict(columns=cols, leave_one_out={
         k: dict(rms_px=v[0], per_image_px=v[1], seconds=v[2]) for k, v in loo.items()},
         source=source, n_corners=len(bd), reference=REFERENCE))
+    if not args.no_franka:
+        real_franka.run(args.franka_data)
 
 
 if __name__ == '__main__':

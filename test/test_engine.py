@@ -179,3 +179,13 @@ def test_engine_solves_board_samples_and_resumes_its_mount(board_joint_bag, tmp_
     np.testing.assert_allclose(fresh.T_link_target, T, atol=1e-6)
     with pytest.raises(ValueError, match='8 saved samples are board samples'):
         CalibrationEngine(EngineSettings(['cam'])).load(tmp_path / 'o')
+
+
+def test_inlier_fractions_are_compared_as_expected_rates():
+    from armcal_ros.engine import inlier_rate
+    assert inlier_rate(7, 7) == pytest.approx(8 / 9)
+    assert inlier_rate(0, 0) == 0.5
+    # A first solve over few observations, then the first outliers found: not a fall of 0.1.
+    assert inlier_rate(7, 7) - inlier_rate(12, 14) < 0.1
+    # A burst of bad detections over a well-observed camera still is.
+    assert inlier_rate(100, 100) - inlier_rate(85, 100) > 0.1

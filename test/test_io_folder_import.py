@@ -21,10 +21,10 @@ from armcal_ros.io.bag import bag_topics
 from armcal_ros.io.folder_import import (FolderFormatError, read_capture_folder,
                                          write_capture_bag)
 from helpers.board_scene import BOARD_SIZE, check_mount, K, T_CAM_BASE, write_capture_folder
-from helpers.captures import import_and_calibrate
+from helpers.captures import (FRANKA, import_and_calibrate, write_group_params,
+                              write_mixed_cell_folder)
 
-REAL = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..',
-                                     'shared', 'data', 'fairo_franka_3cam', 'caldata_world_cam'))
+REAL = os.path.join(FRANKA, 'caldata_world_cam')
 
 
 def test_capture_folder_to_bag_to_calibration(tmp_path, capsys):
@@ -67,7 +67,6 @@ def test_joint_angle_tables_and_bad_folders(tmp_path):
         read_capture_folder(str(tmp_path))
 
 
-@pytest.mark.skipif(not os.path.isdir(REAL), reason=f'real data {REAL} absent')
 def test_the_fairo_layout_is_read():
     f = read_capture_folder(REAL)
     assert len(f.samples) == 20 and f.cameras == ['cam0', 'cam1', 'cam2']
@@ -78,7 +77,6 @@ def test_the_fairo_layout_is_read():
     assert all(len(f.images[c]) == 20 for c in f.cameras)
 
 
-@pytest.mark.skipif(not os.path.isdir(REAL), reason=f'real data {REAL} absent')
 def test_the_franka_set_calibrates_end_to_end(tmp_path):
     # docs/BENCHMARKS.md, "Real data: Franka Panda": with the factory intrinsics fixed and one
     # marker point estimated from a guess, every camera within 1 degree and 4 cm of the original
@@ -126,7 +124,6 @@ def test_given_intrinsics_from_the_bags_camera_info(tmp_path):
         calibrate_bag(str(tmp_path / 'bare'), load_settings(str(p)), tmp_path / 'out2')
 
 
-@pytest.mark.skipif(not os.path.isdir(REAL), reason=f'real data {REAL} absent')
 def test_the_franka_wrist_camera_calibrates_eye_in_hand(tmp_path):
     # The camera on the flange, a static tag: the original tool accepts < 2 px.
     wrist = os.path.join(os.path.dirname(REAL), 'caldata_wrist_cam')
@@ -138,3 +135,33 @@ def test_the_franka_wrist_camera_calibrates_eye_in_hand(tmp_path):
     assert cam['rms_px'] < 2.0 and cam['n_inliers'] >= 18, cam
     # The tag lies on the table: its centre's height in the base is about zero.
     assert abs(report['target']['T_link_target'][2]) < 0.02
+
+
+def test_a_cell_with_static_cameras_and_a_wrist_camera_in_one_recording(tmp_path):
+    # The real world-camera captures, then the wrist camera's, in one folder and one bag (as a
+    # cell with both kinds records them), calibrated by two calibrators over that bag - as two
+    # nodes run live (README, "Cameras on the arm"; test_ros_node_groups.py): the static
+    # cameras with the tag on the gripper, the wrist camera (eye_in_hand) with the tag on the
+    # table.  The static cameras come out in the base, the wrist camera on the flange.
+    import yaml
+
+    from armcal_ros.offline import calibrate_bag
+    from armcal_ros.settings import load_settings
+    bag = tmp_path / 'bag'
+    assert main(['import-folder', write_mixed_cell_folder(tmp_path / 'cell'),
+                 '--output', str(bag)]) == 0
+    files = write_group_params(bag)
+    static = calibrate_bag(str(bag), load_settings(files['static']), tmp_path / 'static').report
+    hand = calibrate_bag(str(bag), load_settings(files['hand']), tmp_path / 'hand').report
+    with open(os.path.join(os.path.dirname(REAL), 'reference', 'calibration.json')) as f:
+        ref = json.load(f)
+    for j, name in enumerate(('cam0', 'cam1', 'cam2')):
+        cam = static['cameras'][name]
+        assert np.linalg.norm(np.array(cam['translation']) - ref[j]['camera_base_pos']) < 0.04
+    # The wrist captures show tag 1 only and the world captures tag 0 only (to these cameras).
+    assert static['n_samples'] <= 20 and hand['n_samples'] <= 20
+    assert hand['cameras']['wrist']['rms_px'] < 2.0
+    ext = yaml.safe_load((tmp_path / 'hand' / 'extrinsics.yaml').read_text())
+    assert ext['base_frame'] == 'tool0' and set(ext['cameras']) == {'wrist'}
+    ext = yaml.safe_load((tmp_path / 'static' / 'extrinsics.yaml').read_text())
+    assert ext['base_frame'] == 'base_link' and set(ext['cameras']) == {'cam0', 'cam1', 'cam2'}

@@ -285,7 +285,7 @@ class CalibratorNode(Node):
         # Relative file names: beside a --params-file that has them, else the working directory.
         resolve_paths(values, _params_file_dirs(argv) + [os.getcwd()])
         try:
-            return values, settings_from_values(values)
+            return values, settings_from_values(values, node_name=self.get_name())
         except ValueError as exc:
             raise ParameterError(str(exc)) from exc
 
@@ -313,7 +313,8 @@ class CalibratorNode(Node):
 
     def _engine_settings(self, values):
         """Return the engine's settings under new parameter values (same target, cameras)."""
-        settings = with_given_intrinsics(settings_from_values(values), self._info_intrinsics)
+        settings = with_given_intrinsics(settings_from_values(values, node_name=self.get_name()),
+                                         self._info_intrinsics)
         return engine_settings(settings, self.engine.settings.board)
 
     def _camera_info_callback(self, camera):
