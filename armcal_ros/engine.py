@@ -11,8 +11,9 @@ re-solving the same data).  The first solve starts from scratch (DLT, fixed, mod
 are warm-started from the current calibration.
 
 A new result replaces the current calibration only if it is not clearly worse: it must have
-converged, and no camera's inlier reprojection RMS may exceed ``max(reject_rms_ratio x previous,
-previous + reject_rms_margin_px)``, nor its inlier fraction drop by more than
+converged, and no camera's image noise estimated from its residuals (the RMS corrected for the
+degrees of freedom its parameters took, :func:`_residuals_worse`) may exceed
+``max(reject_rms_ratio x previous, previous + reject_rms_margin_px)``, nor its inlier fraction drop by more than
 ``reject_inlier_drop`` (fractions as expected rates, :func:`inlier_rate`).  A burst of bad
 detections therefore cannot overwrite a good calibration; the rejection is reported with its
 reason.
@@ -110,6 +111,28 @@ class EngineSettings:
                 raise ValueError(f'point_place_guess must have shape (3,), got '
                                  f'{np.shape(self.point_place_guess)}')
         return self
+
+
+def _residuals_worse(old, new, ratio, margin_px):
+    """
+    Say how the new fit of a camera is clearly worse than the old one, or return ''.
+
+    Compared: the image noise each fit's residuals give, sum |r|^2 over the degrees of freedom
+    left (``sigma_px``, redundancy counted by leverage), not the raw RMS.  A fit whose
+    parameters absorb its few observations has an RMS near zero that says nothing about the
+    noise (a first solve over three views of a camera: 0.000 px), and the next solve's honest
+    0.99 px is then no reason to refuse it.  Without redundancy in the old fit there is no
+    yardstick and nothing is refused on these grounds.  Calibrations saved before the
+    redundancy was recorded fall back to the RMS.
+    """
+    a, b, what = old.sigma_px, new.sigma_px, 'image noise from its residuals'
+    if not np.isfinite(old.redundancy):
+        a, b, what = old.rms_px, new.rms_px, 'reprojection RMS'
+    if not (np.isfinite(a) and np.isfinite(b)):
+        return ''
+    limit = max(ratio * a, a + margin_px)
+    return (f'{what} {b:.2f} px > {limit:.2f} px allowed after {a:.2f} px' if b > limit
+            else '')
 
 
 def inlier_rate(n_inliers, n_observations):
@@ -518,11 +541,10 @@ class CalibrationEngine:
                 if name not in old.cameras:
                     continue
                 o = old.cameras[name]
-                limit = max(s.reject_rms_ratio * o.rms_px, o.rms_px + s.reject_rms_margin_px)
-                if c.rms_px > limit:
-                    return SolveOutcome(False, f'rejected: {name} reprojection RMS '
-                                        f'{c.rms_px:.2f} px > {limit:.2f} px allowed after '
-                                        f'{o.rms_px:.2f} px', result, new, n, elapsed)
+                worse = _residuals_worse(o, c, s.reject_rms_ratio, s.reject_rms_margin_px)
+                if worse:
+                    return SolveOutcome(False, f'rejected: {name} {worse}', result, new, n,
+                                        elapsed)
                 fo = inlier_rate(o.n_inliers, o.n_observations)
                 fn = inlier_rate(c.n_inliers, c.n_observations)
                 if fn < fo - s.reject_inlier_drop:

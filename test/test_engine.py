@@ -189,3 +189,21 @@ def test_inlier_fractions_are_compared_as_expected_rates():
     assert inlier_rate(7, 7) - inlier_rate(12, 14) < 0.1
     # A burst of bad detections over a well-observed camera still is.
     assert inlier_rate(100, 100) - inlier_rate(85, 100) > 0.1
+
+
+def test_a_fit_without_redundancy_sets_no_yardstick():
+    from armcal_ros.core.camera import Camera
+    from armcal_ros.core.results import CameraCalibration
+    from armcal_ros.engine import _residuals_worse
+
+    def cam(rms, red, sigma):
+        return CameraCalibration(Camera('c', 640, 480, 500, 500, 320, 240), {}, np.eye(6), rms,
+                                 10, 10, red, sigma)
+    # Three views fitted exactly (RMS 0, no redundancy), then an honest fit: accepted.
+    assert _residuals_worse(cam(0.0, 0.0, float('nan')), cam(0.99, 20.0, 1.1), 1.5, 0.3) == ''
+    # With redundancy on both sides the image noise is compared.
+    assert 'image noise' in _residuals_worse(cam(0.4, 20.0, 0.5), cam(1.5, 30.0, 1.6), 1.5, 0.3)
+    assert _residuals_worse(cam(0.4, 20.0, 0.5), cam(0.7, 30.0, 0.7), 1.5, 0.3) == ''
+    # A calibration saved before redundancy was recorded: the RMS, as before.
+    old = cam(0.4, float('nan'), float('nan'))
+    assert 'reprojection RMS' in _residuals_worse(old, cam(1.5, 30.0, 1.6), 1.5, 0.3)

@@ -149,6 +149,11 @@ class CameraEstimate:
     rms_px: float = float('nan')
     status: str = 'ok'
     message: str = ''
+    #: Degrees of freedom left in the camera's residuals, 2 n - sum of its leverages.
+    redundancy: float = float('nan')
+    #: The camera's own image noise estimate (px per axis): sqrt(sum w |r|^2 / redundancy),
+    #: NaN without redundancy (a camera whose data its parameters can fit exactly).
+    sigma_px: float = float('nan')
 
 
 @dataclass
@@ -503,6 +508,80 @@ class _Problem:
         logdet_p = -3.0 * 2.0 * float(np.sum(np.log(np.diag(self.prior._chol[0]))))
         return U - Wm @ cho_solve(F, Wm.T, check_finite=False), logdet_v, logdet_p
 
+    def leverages(self, cams, X, g, cov):
+        """
+        Leverage h_k of each observation (0 for inactive ones): its share of the fit.
+
+        With the whole posterior covariance Sigma = N^-1 over (cameras, globals, points),
+        h_k = w_k tr(J_k Sigma_k J_k^T), J_k = [J_c J_x] the observation's derivatives with
+        respect to its camera and point and w_k its weight (robust weight / s_px^2).  The sum
+        of h_k over a camera's observations is the number of parameters its data pay for, so
+        r_j = 2 n_j - sum h_k is the camera's redundancy: the degrees of freedom left in its
+        residuals (Foerstner's redundancy numbers).  It counts what a prior or a held value
+        restrains - a fixed intrinsic, a point held by its prior, a global parameter under its
+        prior - at its real weight, which counting parameters cannot.
+
+        Sigma is never formed: with the points eliminated (N = [[A, B], [B^T, V]], S = A - B
+        V^-1 B^T, ``cov`` = S^-1 over (cameras, globals)) and L_i = B_i V_i^-1, the blocks
+        needed are Sigma_cc = S^-1, Sigma_cx_i = -S^-1 L_i and Sigma_xx_ii = (V^-1)_ii +
+        L_i^T S^-1 L_i.  V is block-diagonal except under the exact correlated prior, whose
+        dense V^-1 is formed once here.
+        """
+        _, _, W, Vb, _, _ = self.normal_equations(cams, X, g)
+        lay = self.layout
+        pc, C, n = lay.per_camera, lay.size, self.n
+        T = cov.shape[0]
+        h = np.zeros(len(self.obs))
+        L = Einv = None
+        if self.optimise_points:
+            kind = self.prior.kind
+            if kind == 'dense':
+                V = self.P_dense.copy()
+                ii = np.arange(n)
+                for a in range(3):
+                    for b in range(3):
+                        V[3 * ii + a, 3 * ii + b] += Vb[:, a, b]
+                Vinv = cho_solve(cho_factor(V, lower=True, check_finite=False),
+                                 np.eye(3 * n), check_finite=False)
+                Einv = np.stack([Vinv[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(n)])
+                L = (W.reshape(C, 3 * n) @ Vinv).reshape(C, n, 3).transpose(1, 0, 2)
+            else:
+                if kind == 'block':
+                    V = Vb + self.prior.block_precision()
+                else:
+                    V = Vb + self.prior.precision[:, None, None] * np.eye(3)
+                Einv = np.linalg.inv(V)
+                L = np.einsum('cnk,nkl->ncl', W, Einv)                   # (n, C, 3)
+                G = T - C
+                if G:
+                    # B_g,i = -p_i A_i^T: the prior couples point i to the globals.
+                    A = np.stack([self.prior.design.apply(e) for e in np.eye(G)], axis=2)
+                    Lg = -self.prior.precision[:, None, None] * np.einsum(
+                        'nkg,nkl->ngl', A, Einv)                           # (n, G, 3)
+                    L = np.concatenate([L, Lg], axis=1)
+            # Sigma_xx_ii for every point, once.
+            Sxx = Einv + np.einsum('ntk,ts,nsl->nkl', L, cov, L, optimize=True)
+        inv_s2 = 1.0 / self.s.pixel_sigma ** 2
+        for j, idx in enumerate(self.by_camera):
+            if idx.size == 0:
+                continue
+            c = cams[j]
+            pts = self.obs.point[idx]
+            J = project_with_jacobians(c.intrinsics(), c.dist, c.rotation, c.translation,
+                                       X[pts])
+            r = J.uv - self.obs.uv[idx]
+            w = weights(np.sum(r * r, axis=1), self.s.loss, self.s.loss_scale) * inv_s2
+            Jc = lay.camera_jacobian(J)                                   # (m, 2, pc)
+            sl = slice(j * pc, (j + 1) * pc)
+            hk = np.einsum('mak,kl,mal->m', Jc, cov[sl, sl], Jc)
+            if self.optimise_points:
+                Jx = J.d_point                                            # (m, 2, 3)
+                Scx = -np.einsum('kt,mtl->mkl', cov[sl, :], L[pts])     # (m, pc, 3)
+                hk = hk + 2.0 * np.einsum('mak,mkl,mal->m', Jc, Scx, Jx) + \
+                    np.einsum('mak,mkl,mal->m', Jx, Sxx[pts], Jx)
+            h[idx] = w * hk
+        return h
+
     def step(self, cams, X, dc, dx, g=None, dg=None):
         pc = self.layout.per_camera
         new_cams = [_apply_camera_step(c, dc[j * pc:(j + 1) * pc], self.layout)
@@ -585,6 +664,11 @@ def _levenberg_marquardt(problem: _Problem, cams, X, g):
     return cams, X, g, cost, initial, it, status, message
 
 
+#: A camera's residuals estimate its image noise only with at least this many degrees of
+#: freedom left (one: with less, the estimate is a ratio of two numbers near zero).
+REDUNDANCY_FLOOR = 1.0
+
+
 def _robust_sigma(d):
     """Per-axis pixel sigma from residual norms: the Rayleigh median is 1.1774 sigma."""
     return float(np.median(d)) / 1.1774 if d.size else float('nan')
@@ -665,7 +749,12 @@ def adjust(cameras: Sequence[Camera], measured, obs: Observations,
     C = problem.layout.size
     cov = full_cov[:C, :C]
     names = problem.layout.names([c.name for c in cams])
-    estimates = _camera_estimates(cams, obs, X, active, cov, problem.layout)
+    try:
+        lev = problem.leverages(cams, X, g, full_cov) if np.all(np.isfinite(full_cov)) \
+            else None
+    except (LinAlgError, FloatingPointError, ValueError):
+        lev = None
+    estimates = _camera_estimates(cams, obs, X, active, cov, problem.layout, lev, settings)
     ok = status == 'converged' and np.all(np.isfinite(cov.diagonal()))
     result = AdjustmentResult(
         success=bool(ok), status=status, message=message, cost=float(cost),
@@ -718,8 +807,11 @@ def _safe_inverse(S):
         return np.linalg.pinv(S)
 
 
-def _camera_estimates(cams, obs, X, active, cov, layout):
+def _camera_estimates(cams, obs, X, active, cov, layout, leverage=None, settings=None):
     d = _all_residual_norms(cams, X, obs)
+    if leverage is not None:
+        # Robust weights (no 1/s^2): a down-weighted residual counts as the loss counts it.
+        w_rob = weights(d ** 2, settings.loss, settings.loss_scale)
     pc = layout.per_camera
     nd = len(layout.dist_idx)
     out = {}
@@ -740,6 +832,13 @@ def _camera_estimates(cams, obs, X, active, cov, layout):
             std[f'center_{ax}'] = float(np.sqrt(max(cc[a, a], 0.0)))
             std[f'rot_{ax}'] = float(sd[4 + nd + a])
         rms = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float('nan')
-        out[c.name] = CameraEstimate(c, {k: float(v) for k, v in std.items()},
-                                     int(sel.sum()), int(inl.sum()), rms)
+        est = CameraEstimate(c, {k: float(v) for k, v in std.items()},
+                             int(sel.sum()), int(inl.sum()), rms)
+        if leverage is not None and inl.any():
+            est.redundancy = float(2 * inl.sum() - np.sum(leverage[inl]))
+            if est.redundancy > REDUNDANCY_FLOOR:
+                # |r|^2 sums both axes and the redundancy counts scalar equations.
+                est.sigma_px = float(np.sqrt(np.sum(w_rob[inl] * d[inl] ** 2) /
+                                             est.redundancy))
+        out[c.name] = est
     return out

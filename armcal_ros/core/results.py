@@ -30,6 +30,10 @@ class CameraCalibration:
     rms_px: float
     n_observations: int
     n_inliers: int
+    #: Degrees of freedom left in the camera's residuals and the image noise they give (px per
+    #: axis; NaN without redundancy) - :class:`~armcal_ros.core.adjustment.CameraEstimate`.
+    redundancy: float = float('nan')
+    sigma_px: float = float('nan')
 
 
 @dataclass
@@ -58,11 +62,18 @@ class Calibration:
                 std={k: float(v) for k, v in c.std.items()},
                 pose_covariance=[float(v) for v in np.asarray(c.pose_covariance).ravel()],
                 rms_px=float(c.rms_px), n_observations=int(c.n_observations),
-                n_inliers=int(c.n_inliers))
+                n_inliers=int(c.n_inliers), redundancy=_json_float(c.redundancy),
+                sigma_px=_json_float(c.sigma_px))
         return dict(model=self.model, cost=float(self.cost), n_samples=int(self.n_samples),
                     solve_time_s=float(self.solve_time_s), solved_at=float(self.solved_at),
                     status=self.status, message=self.message,
                     hyperparameters=dict(self.hyperparameters), cameras=cams)
+
+
+def _json_float(x):
+    """Return ``x`` as a float, None for NaN (JSON has no NaN)."""
+    x = float(x)
+    return None if not np.isfinite(x) else x
 
 
 def calibration_from_result(result: CalibrationResult, n_samples, hyper=None) -> Calibration:
@@ -75,6 +86,7 @@ def calibration_from_result(result: CalibrationResult, n_samples, hyper=None) ->
         cov = adj.covariance[np.ix_(idx, idx)]
         cams[name] = CameraCalibration(est.camera.copy(), dict(est.std),
                                        pose_covariance(est.camera, cov), est.rms_px,
-                                       est.n_observations, est.n_inliers)
+                                       est.n_observations, est.n_inliers, est.redundancy,
+                                       est.sigma_px)
     return Calibration(cams, adj.model, adj.cost, n_samples, result.time_s, time.time(),
                        result.status, result.message, dict(hyper or {}))

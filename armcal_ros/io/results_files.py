@@ -38,6 +38,11 @@ def write_calibration(directory, cal: Calibration, base_frame):
     return written
 
 
+def _nan_if_none(x):
+    """Return a float, NaN for a missing or null entry (files of earlier versions)."""
+    return float('nan') if x is None else float(x)
+
+
 def load_calibration(directory) -> Calibration:
     """Read a calibration written by :func:`write_calibration`; ValueError names the file."""
     path = os.path.join(directory, CALIBRATION_FILE)
@@ -52,7 +57,8 @@ def load_calibration(directory) -> Calibration:
         d = doc['cameras'][cam.name]
         out[cam.name] = CameraCalibration(
             cam, dict(d['std']), np.asarray(d['pose_covariance'], float).reshape(6, 6),
-            float(d['rms_px']), int(d['n_observations']), int(d['n_inliers']))
+            float(d['rms_px']), int(d['n_observations']), int(d['n_inliers']),
+            _nan_if_none(d.get('redundancy')), _nan_if_none(d.get('sigma_px')))
     return Calibration(out, doc['model'], doc['cost'], doc['n_samples'], doc['solve_time_s'],
                        doc['solved_at'], doc['status'], doc['message'],
                        doc.get('hyperparameters', {}))

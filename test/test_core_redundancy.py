@@ -1,0 +1,119 @@
+"""
+Leverages and redundancy of the adjustment: each camera's degrees of freedom left in its residuals.
+
+The Schur-complement formulas of ``_Problem.leverages`` are checked against the whole normal
+matrix assembled densely and inverted (independent prior, exact correlated prior, and a global
+prior: the kinematic model), and against the parameter count where it is exact (points known).
+"""
+
+import numpy as np
+import pytest
+
+from armcal_ros.core import adjustment as adj
+from armcal_ros.core.adjustment import adjust, SolverSettings
+from armcal_ros.core.camera import project_with_jacobians
+from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
+from armcal_ros.core.priors import PointPrior, PriorSettings
+from armcal_ros.sim.robot_points import make_robot_problem
+
+SETTINGS = SolverSettings(pixel_sigma=0.3, max_gate_rounds=0, gate_min_px=1e9)
+
+
+@pytest.fixture(scope='module')
+def prob():
+    return make_robot_problem('geometric', 25, 4, pixel_sigma=0.3, n_test=10)
+
+
+def _dense_leverages(problem, res):
+    """h_k from the whole normal matrix N = [[U, W], [W^T, V]], inverted densely."""
+    cams = [e.camera for e in res.cameras.values()]
+    U, _, W, Vb, _, _ = problem.normal_equations(cams, res.points)
+    C, n = problem.layout.size, problem.n
+    V = np.zeros((3 * n, 3 * n))
+    for i in range(n):
+        V[3 * i:3 * i + 3, 3 * i:3 * i + 3] = Vb[i]
+    V += (np.kron(np.eye(n), np.eye(3)) / problem.prior.settings.point_sigma ** 2
+          if problem.prior.kind == 'block' else problem.P_dense)
+    N = np.block([[U, W.reshape(C, 3 * n)], [W.reshape(C, 3 * n).T, V]])
+    Sigma = np.linalg.inv(N)
+    pc = problem.layout.per_camera
+    h = np.zeros(len(problem.obs))
+    for j, idx in enumerate(problem.by_camera):
+        c = cams[j]
+        for k in idx:
+            i = problem.obs.point[k]
+            J = project_with_jacobians(c.intrinsics(), c.dist, c.rotation, c.translation,
+                                       res.points[i][None])
+            Jk = np.zeros((2, C + 3 * n))
+            Jk[:, j * pc:(j + 1) * pc] = problem.layout.camera_jacobian(J)[0]
+            Jk[:, C + 3 * i:C + 3 * i + 3] = J.d_point[0]
+            h[k] = np.trace(Jk @ Sigma @ Jk.T) / SETTINGS.pixel_sigma ** 2
+    return h
+
+
+@pytest.mark.parametrize('model', ['independent', 'correlated'])
+def test_leverages_match_the_whole_normal_matrix(prob, model):
+    ps = PriorSettings(model)
+    res = adjust(prob.cameras, prob.measured, prob.obs, ps, SETTINGS)
+    assert res.status == 'converged'
+    cams = [e.camera for e in res.cameras.values()]
+    problem = adj._Problem(cams, prob.measured, prob.obs, PointPrior(prob.measured, ps),
+                           SETTINGS, res.inliers)
+    h = problem.leverages(cams, res.points, None, res.covariance)
+    np.testing.assert_allclose(h, _dense_leverages(problem, res), rtol=1e-6, atol=1e-9)
+    assert np.all((h > 0) & (h < 2))
+    red = sum(e.redundancy for e in res.cameras.values())
+    assert red == pytest.approx(2 * res.inliers.sum() - h.sum())
+
+
+def test_with_known_points_the_leverages_count_the_free_parameters(prob):
+    # fixed: the points are the robot's; each camera pays for its 14 parameters exactly, and
+    # for 6 when its intrinsics and distortion are held.
+    given = {'cam2': IntrinsicsPrior.from_camera(prob.cameras[1])}
+    res = adjust(prob.cameras, prob.measured, prob.obs, PriorSettings('fixed'),
+                 SolverSettings(pixel_sigma=0.3, max_gate_rounds=0, gate_min_px=1e9,
+                                intrinsics=given))
+    for name, free in (('cam1', 14), ('cam2', 6), ('cam3', 14)):
+        e = res.cameras[name]
+        assert 2 * e.n_inliers - e.redundancy == pytest.approx(free, abs=1e-6), name
+
+
+def test_kinematic_leverages_match_the_whole_normal_matrix(prob):
+    # A global prior (the kinematic model's error parameters g): N gains the rows of g,
+    # H_gg = sum_i p_i A_i^T A_i + I and H_gx_i = -p_i A_i^T, and V_i = Vb_i + p_i I.
+    from armcal_ros.core.kinematic_prior import KinematicData
+    chain = prob.robot.chain
+    kin = KinematicData(chain.jacobian_errors(prob.q, prob.robot.point), chain.error_names)
+    ps = PriorSettings('kinematic')
+    res = adjust(prob.cameras, prob.measured, prob.obs, ps, SETTINGS, kinematics=kin)
+    cams = [e.camera for e in res.cameras.values()]
+    prior = PointPrior(prob.measured, ps, kin)
+    problem = adj._Problem(cams, prob.measured, prob.obs, prior, SETTINGS, res.inliers)
+    g = res.global_parameters
+    cov = np.linalg.inv(problem.reduced_matrix(cams, res.points, g))
+    h = problem.leverages(cams, res.points, g, cov)
+    U, _, W, Vb, _, _ = problem.normal_equations(cams, res.points, g)
+    C, n, G = problem.layout.size, problem.n, len(g)
+    p = prior.precision
+    A = np.stack([prior.design.apply(e) for e in np.eye(G)], axis=2)       # (n, 3, G)
+    V = np.zeros((3 * n, 3 * n))
+    Hgx = np.zeros((G, 3 * n))
+    for i in range(n):
+        V[3 * i:3 * i + 3, 3 * i:3 * i + 3] = Vb[i] + p[i] * np.eye(3)
+        Hgx[:, 3 * i:3 * i + 3] = -p[i] * A[i].T
+    Hgg = np.einsum('n,nkg,nkh->gh', p, A, A) + np.eye(G)
+    Wm = W.reshape(C, 3 * n)
+    N = np.block([[U, np.zeros((C, G)), Wm], [np.zeros((G, C)), Hgg, Hgx], [Wm.T, Hgx.T, V]])
+    Sigma = np.linalg.inv(N)
+    pc = problem.layout.per_camera
+    for j, idx in enumerate(problem.by_camera):
+        c = cams[j]
+        for k in idx[:5]:
+            i = problem.obs.point[k]
+            J = project_with_jacobians(c.intrinsics(), c.dist, c.rotation, c.translation,
+                                       res.points[i][None])
+            Jk = np.zeros((2, C + G + 3 * n))
+            Jk[:, j * pc:(j + 1) * pc] = problem.layout.camera_jacobian(J)[0]
+            Jk[:, C + G + 3 * i:C + G + 3 * i + 3] = J.d_point[0]
+            want = np.trace(Jk @ Sigma @ Jk.T) / SETTINGS.pixel_sigma ** 2
+            assert h[k] == pytest.approx(want, rel=1e-6, abs=1e-9), k
