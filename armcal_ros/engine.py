@@ -13,10 +13,10 @@ are warm-started from the current calibration.
 A new result replaces the current calibration only if it is not clearly worse: it must have
 converged, and no camera's image noise estimated from its residuals (the RMS corrected for the
 degrees of freedom its parameters took, :func:`_residuals_worse`) may exceed
-``max(reject_rms_ratio x previous, previous + reject_rms_margin_px)``, nor its inlier fraction drop by more than
-``reject_inlier_drop`` (fractions as expected rates, :func:`inlier_rate`).  A burst of bad
-detections therefore cannot overwrite a good calibration; the rejection is reported with its
-reason.
+``max(reject_rms_ratio x previous, previous + reject_rms_margin_px)``, nor its inlier
+fraction drop by more than ``reject_inlier_drop`` (fractions as expected rates,
+:func:`inlier_rate`).  A burst of bad detections therefore cannot overwrite a good
+calibration; the rejection is reported with its reason.
 
 Cameras on the arm (``EngineSettings.eye_in_hand``) looking at a static target are the same
 problem with the roles of base and link swapped: seen from the link, the target moves by
