@@ -387,7 +387,7 @@ class CalibrationEngine:
         obs = Observations(remap[arrays.camera_index[sel]], arrays.point_index[sel],
                            arrays.uv[sel])
         kw = dict(kinematics=kin if prior.model in KINEMATIC_MODELS + ('auto',) else None)
-        if searching:
+        if searching or self.settings.solver.estimate_noise:
             kw['pooled_sigma_px'] = pooled_pixel_sigma(arrays.spread_px[sel],
                                                        arrays.n_frames[sel])
         specs_kept = [specs[j] for j in keep]
@@ -420,7 +420,7 @@ class CalibrationEngine:
         """Between auto's searches, solve the chosen model with the image noise it estimated."""
         solver = self.settings.solver
         if not searching and self.settings.prior.model == 'auto' and self._auto_pixel_sigma:
-            solver = replace(solver, pixel_sigma=self._auto_pixel_sigma)
+            solver = replace(solver, pixel_sigma=self._auto_pixel_sigma, estimate_noise=False)
         return solver
 
     def _remember_auto_choice(self, result, n):
@@ -526,8 +526,13 @@ class CalibrationEngine:
         hyper = dict(model=used.model, point_sigma=used.point_sigma, bias_sigma=used.bias_sigma,
                      coherence_length=used.coherence_length,
                      kinematic_scale=getattr(used, 'kinematic_scale', 1.0),
-                     pixel_sigma=(self._auto_pixel_sigma or self.settings.solver.pixel_sigma)
-                     if self.settings.prior.model == 'auto' else self.settings.solver.pixel_sigma)
+                     pixel_sigma=(result.pixel_sigma if np.isfinite(result.pixel_sigma)
+                                  else self.settings.solver.pixel_sigma),
+                     pixel_sigma_source=(result.noise_source if np.isfinite(result.pixel_sigma)
+                                         else 'given'))
+        if self.settings.prior.model == 'auto' and not result.selection and \
+                self._auto_pixel_sigma:
+            hyper['pixel_sigma_source'] = 'free network (the last search)'
         if self.settings.prior.model == 'auto':
             hyper['auto_reason'] = self.auto_reason
         new = calibration_from_result(result, n, hyper)

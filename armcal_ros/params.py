@@ -122,7 +122,10 @@ PARAMS = [
           'CompressedImage', _topics),
     Param('noise_model', 'string', 'auto',
           'prior on the robot\'s points: ' + ', '.join(NOISE_MODELS), _one_of(NOISE_MODELS)),
-    Param('pixel_sigma', 'double', 0.5, 'image noise, pixels', _positive, minimum=0.0),
+    Param('pixel_sigma', 'double', 0.0,
+          'image noise, pixels per axis; 0: estimated from the data (the residuals\' variance '
+          'factor for a given model, the free network for auto, the pooled detections\' '
+          'scatter with one camera); > 0: used as given', _nonneg, minimum=0.0),
     Param('point_sigma', 'double', 0.0002, 'independent point noise s_n, metres', _positive,
           minimum=0.0),
     Param('bias_sigma', 'double', 0.001, 'correlated bias scale s_b, metres', _nonneg,

@@ -248,11 +248,18 @@ def prior_settings(values) -> PriorSettings:
         values['coherence_length'], values['kernel']).validate())
 
 
+#: Where the image-noise estimate starts (px): a detector's typical sub-pixel noise; the
+#: estimate replaces it after the first adjustment.
+START_PIXEL_SIGMA = 0.5
+
+
 def solver_settings(values) -> SolverSettings:
     """Build and validate the solver settings; ValueError names the parameter."""
     given = given_intrinsics(values)
+    given_sigma = values['pixel_sigma'] > 0
     return _named(lambda: SolverSettings(
-        pixel_sigma=values['pixel_sigma'], free_distortion=tuple(values['free_distortion']),
+        pixel_sigma=values['pixel_sigma'] if given_sigma else START_PIXEL_SIGMA,
+        estimate_noise=not given_sigma, free_distortion=tuple(values['free_distortion']),
         loss=values['robust_loss'], loss_scale=values['robust_loss_scale'],
         gate_sigmas=values['outlier_gate_sigmas'], intrinsics=given).validate())
 

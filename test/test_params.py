@@ -12,11 +12,15 @@ def test_defaults_pass_their_own_checks():
     values['robot_description'] = '<robot name="x"/>'
     check_all(values)
     assert prior_settings(values).model == 'auto'
+    # pixel_sigma 0 (the default): estimated, starting at 0.5 px; a number: used as given.
     assert solver_settings(values).pixel_sigma == 0.5
+    assert solver_settings(values).estimate_noise is True
+    given = solver_settings(dict(values, pixel_sigma=0.3))
+    assert given.pixel_sigma == 0.3 and given.estimate_noise is False
 
 
 @pytest.mark.parametrize('name,value,why', [
-    ('pixel_sigma', -1.0, '> 0'),
+    ('pixel_sigma', -1.0, '>= 0'),
     ('pixel_sigma', 'big', 'expected double'),
     ('noise_model', 'magic', 'must be one of'),
     ('camera_names', ['cam 1'], 'A-Za-z0-9_'),

@@ -106,6 +106,10 @@ class SolverSettings:
     """
 
     pixel_sigma: float = 0.5
+    #: Estimate the image noise (pixel_sigma is then the starting value): True for every
+    #: model (:func:`~armcal_ros.core.calibration.calibrate`), False never (auto too uses
+    #: pixel_sigma), None only where ``auto`` needs it for its evidence.
+    estimate_noise: Optional[bool] = None
     free_distortion: Sequence[str] = ('k1', 'k2', 'p1', 'p2')
     loss: str = 'huber'
     loss_scale: float = 2.0

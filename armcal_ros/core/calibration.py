@@ -24,6 +24,10 @@ from armcal_ros.core.priors import KINEMATIC_MODELS, PriorSettings
 
 #: Initial LM damping of the stage after ``fixed`` (see :func:`calibrate`).
 WARM_LAMBDA = 1e-6
+#: Re-weighting rounds of the image-noise estimate, and the relative change that ends them
+#: (2 %: the estimate's own sampling error over a few hundred observations is larger).
+NOISE_ROUNDS = 4
+NOISE_TOLERANCE = 0.02
 
 
 @dataclass
@@ -54,6 +58,11 @@ class CalibrationResult:
     time_s: float = 0.0
     camera_index: Dict[str, int] = field(default_factory=dict)
     selection: Optional[ModelSelection] = None      # the choice of 'auto'
+    #: The image noise (px per axis) the final adjustment was weighted with, and its source:
+    #: 'given' (pixel_sigma), 'residuals' (the model's own variance factor), 'free network'
+    #: or 'pooled detections' (:mod:`armcal_ros.core.image_noise`).
+    pixel_sigma: float = float('nan')
+    noise_source: str = 'given'
 
     @property
     def cameras(self):
@@ -147,17 +156,28 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
         cams = fixed.camera_list()
         inliers = fixed.inliers
         final = fixed
+    sigma, source = settings.pixel_sigma, 'given'
     if prior.model == 'auto':
         selection = select_model(cams, measured, sub, prior, model_settings, kinematics,
-                                 inliers, rng=rng, pooled_sigma_px=pooled_sigma_px)
+                                 inliers, rng=rng, pooled_sigma_px=pooled_sigma_px,
+                                 estimate_noise=settings.estimate_noise is not False)
         final = selection.result
         stages.append((f'auto:{selection.settings.model}', final.cost, final.iterations,
                        selection.time_s))
-    elif prior.model != 'fixed':
+        sigma = selection.pixel_sigma
+        if selection.noise is not None and selection.noise.success:
+            source = 'free network'
+        elif sigma != settings.pixel_sigma:
+            source = 'pooled detections'
+    else:
         kin = kinematics if prior.model in KINEMATIC_MODELS else None
-        final = adjust(cams, measured, sub, prior, model_settings, points_init=points,
-                       inliers=inliers, kinematics=kin, globals_init=globals_init)
-        stages.append((prior.model, final.cost, final.iterations, final.time_s))
+        if prior.model != 'fixed':
+            final = adjust(cams, measured, sub, prior, model_settings, points_init=points,
+                           inliers=inliers, kinematics=kin, globals_init=globals_init)
+            stages.append((prior.model, final.cost, final.iterations, final.time_s))
+        if settings.estimate_noise:
+            final, sigma, source = _reweighted(final, measured, sub, prior, model_settings,
+                                               kin, pooled_sigma_px, stages)
     failed = [r.message for r in init.values() if not r.success]
     msg = final.message if not failed else final.message + '; skipped: ' + '; '.join(failed)
     status = final.status if not failed else 'partial'
@@ -165,4 +185,60 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
         msg = selection.reason + '; ' + msg
     return CalibrationResult(final.success, status, msg, final, init, stages,
                              time.perf_counter() - t0,
-                             {specs[j].name: k for k, j in enumerate(keep)}, selection)
+                             {specs[j].name: k for k, j in enumerate(keep)}, selection,
+                             float(sigma), source)
+
+
+def variance_factor_sigma(result: AdjustmentResult) -> float:
+    """
+    Image noise (px per axis) from an adjustment's residuals: sqrt(sum_j SSR_j / sum_j r_j).
+
+    r_j is camera j's redundancy by leverage and SSR_j = sigma_j^2 r_j its weighted sum of
+    squared residuals (:class:`~armcal_ros.core.adjustment.CameraEstimate`); NaN when no
+    camera has redundancy.
+    """
+    ssr = red = 0.0
+    for e in result.cameras.values():
+        if np.isfinite(e.sigma_px) and np.isfinite(e.redundancy) and e.redundancy > 0:
+            ssr += e.sigma_px ** 2 * e.redundancy
+            red += e.redundancy
+    return float(np.sqrt(ssr / red)) if red > 0 else float('nan')
+
+
+def _reweighted(final, measured, obs, prior, settings, kin, pooled_sigma_px, stages):
+    """
+    Re-solve at the image noise the model's own residuals give, until it settles.
+
+    The variance factor of the adjustment, s^2 = sum |r|^2 / r with the redundancy r counted
+    by leverage (what each camera's parameters, the points under their prior and the global
+    parameters take), estimates the image noise the images were weighted with; the weighting
+    changes how much the prior pulls, so the estimate is iterated (variance component
+    estimation, Foerstner 1979).  With one camera seeing the marker, its residuals cannot
+    separate image noise from the points' freedom: the scatter of the pooled detections
+    (``pooled_sigma_px``) is used instead when there is one.  Returns (result, sigma,
+    source).
+    """
+    sigma, source = settings.pixel_sigma, 'given'
+    seeing = [e for e in final.cameras.values() if e.n_inliers]
+    one = len(seeing) == 1 and prior.model != 'fixed'
+    for _ in range(NOISE_ROUNDS):
+        if final.status == 'failed':
+            break
+        if one and pooled_sigma_px is not None and np.isfinite(pooled_sigma_px) \
+                and pooled_sigma_px > 0:
+            new, how = float(pooled_sigma_px), 'pooled detections'
+        else:
+            new, how = variance_factor_sigma(final), 'residuals'
+        if not (np.isfinite(new) and new > 0):
+            break
+        if abs(new / sigma - 1.0) < NOISE_TOLERANCE:
+            sigma, source = new, how
+            break
+        final = adjust(final.camera_list(), measured, obs, prior,
+                       replace(settings, pixel_sigma=new), points_init=final.points,
+                       inliers=final.inliers, kinematics=kin,
+                       globals_init=final.global_parameters)
+        stages.append((f'{prior.model} at {new:.3g} px', final.cost, final.iterations,
+                       final.time_s))
+        sigma, source = new, how
+    return final, sigma, source

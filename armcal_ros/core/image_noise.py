@@ -8,10 +8,14 @@ only, divided by the redundancy::
 
     s_px^2 = sum |r_k|^2 / (2 M - (C - 7) - sum_i d_i)
 
-over the M inlier observations, C camera parameters (less the 7 of the similarity the images
-cannot fix) and d_i = 3 unknowns per point seen at least twice (2 if seen once): the
-a-posteriori variance factor of photogrammetry.  That model does not depend on which noise
-model is true, so one estimate serves every candidate.
+over the M inlier observations, C camera parameters fitted (less the 7 of the similarity the
+images cannot fix; intrinsics held at given values are not fitted) and d_i = 3 unknowns per
+point seen at least twice (2 if seen once): the a-posteriori variance factor of
+photogrammetry.  The parameters are counted, not weighed by leverage
+(:attr:`~armcal_ros.core.adjustment.CameraEstimate.redundancy`): the estimate rests on the
+points being free, which the loose prior only approximates, and a leverage taken at that prior
+would credit a single camera's views with redundancy they do not have.  That model does not
+depend on which noise model is true, so one estimate serves every candidate.
 
 With one camera (or cameras that never see the same sample) the free network has no
 redundancy: each point can move to fit its single view exactly.  Then the scatter of the pooled
@@ -83,7 +87,8 @@ def estimate_pixel_sigma(cameras, measured, obs: Observations, settings: SolverS
     ``cameras`` are warm-start estimates, ``inliers`` the observations to use (default all).
     The points get an independent prior of ``point_sigma`` (m), much looser than the images,
     so the residuals are image noise; their sum of squares over the redundancy
-    2 M - (C - 7) - sum_i d_i is the a-posteriori variance factor of photogrammetry.
+    2 M - (C - 7) - sum_i d_i is the a-posteriori variance factor of photogrammetry (C counts
+    the camera parameters fitted: intrinsics held at given values are not).
     """
     if not point_sigma > 0:
         raise ValueError(f'point_sigma must be > 0, got {point_sigma}')
@@ -98,7 +103,11 @@ def estimate_pixel_sigma(cameras, measured, obs: Observations, settings: SolverS
     rss = sum(e.rms_px ** 2 * e.n_inliers for e in res.cameras.values() if e.n_inliers)
     seen = np.bincount(obs.point[active], minlength=measured.shape[0])
     point_dof = 3.0 * np.count_nonzero(seen >= 2) + 2.0 * np.count_nonzero(seen == 1)
-    n_cam = len(res.parameter_names)
+    # Intrinsics held at given values are not parameters of the fit.
+    per_camera = len(res.parameter_names) // max(len(res.cameras), 1)
+    held = sum(per_camera - 6 for c in cameras
+               if c.name in settings.intrinsics and settings.intrinsics[c.name].mode == 'fixed')
+    n_cam = len(res.parameter_names) - held
     redundancy = 2.0 * m - max(n_cam - 7, 0) - point_dof
     sigma = float(np.sqrt(rss / redundancy)) if redundancy > 0 else float('nan')
     return NoiseEstimate(sigma, float(redundancy), m, res)
