@@ -179,6 +179,9 @@ class CalibrationEngine:
         self._auto_choice: Optional[PriorSettings] = None
         self._auto_samples = 0
         self._auto_pixel_sigma: Optional[float] = None   # the image noise auto estimated
+        # A single model's uncertainty reference (auto's choice) and the samples it saw.
+        self._reference: Optional[PriorSettings] = None
+        self._reference_samples = 0
         self.auto_reason = ''
         self.store = store if store is not None else SampleStore()
         self.clock = clock
@@ -397,6 +400,9 @@ class CalibrationEngine:
             points, kin, place, initial, note = self._points_at_place(
                 arrays, kin, specs_kept, obs, initial, solver)
             kw['kinematics'] = kin
+        if self.settings.prior.model != 'auto':
+            kw['reference'] = self._reference_for(specs_kept, points, obs, initial, kin, solver,
+                                                  n, arrays, sel)
         result = calibrate(specs_kept, points, obs, prior, solver, initial=initial, **kw)
         if (result.adjustment is None or not np.all(np.isfinite(result.adjustment.covariance))) \
                 and initial is not None:
@@ -415,6 +421,29 @@ class CalibrationEngine:
                 outcome.calibration.hyperparameters['T_link_target'] = pose_vector(T)
                 outcome.calibration.hyperparameters['place_stage'] = note
         return self._finish(outcome)
+
+    def _reference_for(self, specs, points, obs, initial, kin, solver, n, arrays, sel):
+        """
+        Return the prior that describes the arm's errors on these data (``auto``'s choice).
+
+        A single model's covariance is widened by what the errors it does not describe do to
+        its cameras (:func:`~armcal_ros.core.calibration.calibrate`, ``reference``); which
+        errors the data show is what the ``auto`` search finds.  It runs on the first solve
+        and again whenever the samples have grown by half, as ``auto`` itself does; in
+        between the last choice serves.  None if the search fails.
+        """
+        with self._lock:
+            ref, at = self._reference, self._reference_samples
+        if ref is not None and n < 1.5 * at:
+            return ref
+        pooled = pooled_pixel_sigma(arrays.spread_px[sel], arrays.n_frames[sel])
+        search = calibrate(specs, points, obs, replace(self.settings.prior, model='auto'),
+                           solver, initial=initial, kinematics=kin, pooled_sigma_px=pooled)
+        if search.selection is None or not search.success:
+            return ref
+        with self._lock:
+            self._reference, self._reference_samples = search.selection.settings, n
+        return search.selection.settings
 
     def _solver_settings(self, searching):
         """Between auto's searches, solve the chosen model with the image noise it estimated."""
@@ -529,7 +558,8 @@ class CalibrationEngine:
                      pixel_sigma=(result.pixel_sigma if np.isfinite(result.pixel_sigma)
                                   else self.settings.solver.pixel_sigma),
                      pixel_sigma_source=(result.noise_source if np.isfinite(result.pixel_sigma)
-                                         else 'given'))
+                                         else 'given'),
+                     uncertainty=getattr(result, 'uncertainty', 'model'))
         if self.settings.prior.model == 'auto' and not result.selection and \
                 self._auto_pixel_sigma:
             hyper['pixel_sigma_source'] = 'free network (the last search)'

@@ -339,8 +339,14 @@ def format_table(report):
              f'{report["message"]}']
     if report['noise_model'] == 'auto' and chosen:
         lines.append(f'auto chose {chosen.get("model")}: {chosen.get("auto_reason", "")}')
+    if chosen.get('pixel_sigma') is not None:
+        lines.append(f'image noise {chosen["pixel_sigma"]:.3f} px '
+                     f'({chosen.get("pixel_sigma_source", "given")}); uncertainty: '
+                     f'{chosen.get("uncertainty", "model")}; expected 3-D error the '
+                     f'calibration adds over the workspace '
+                     f'{chosen.get("triangulation_error_mm") or float("nan"):.2f} mm')
     lines.append(f'{"camera":<10} {"fx":>9} {"fy":>9} {"cx":>8} {"cy":>8} {"k1":>8} '
-                 f'{"obs":>5} {"inl":>5} {"rms px":>7}')
+                 f'{"obs":>5} {"inl":>5} {"rms px":>7} {"3-D mm":>7}')
     for name, c in report['cameras'].items():
         if 'fx' not in c:
             lines.append(f'{name:<10} {c["status"]}: {c["message"]}')
@@ -348,7 +354,7 @@ def format_table(report):
         s = c['std']
         lines.append(f'{name:<10} {c["fx"]:9.2f} {c["fy"]:9.2f} {c["cx"]:8.2f} {c["cy"]:8.2f} '
                      f'{c["dist"][0]:8.4f} {c["n_observations"]:5d} {c["n_inliers"]:5d} '
-                     f'{c["rms_px"]:7.3f}')
+                     f'{c["rms_px"]:7.3f} {c.get("workspace_error_mm") or float("nan"):7.2f}')
         lines.append(f'{"  +/-":<10} {s["fx"]:9.2f} {s["fy"]:9.2f} {s["cx"]:8.2f} '
                      f'{s["cy"]:8.2f} {s.get("k1", 0.0):8.4f}')
     t = report['timings']

@@ -30,6 +30,7 @@ import argparse
 import os
 import sys
 import time
+from dataclasses import replace
 from multiprocessing import Pool
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
@@ -40,11 +41,12 @@ import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from _report import machine, table, write_json, write_section  # noqa: E402
-from armcal_ros.core.adjustment import SolverSettings  # noqa: E402
+from armcal_ros.core.adjustment import (covariance_under, SolverSettings,  # noqa: E402
+                                        with_covariance)
 from armcal_ros.core.calibration import calibrate  # noqa: E402
 from armcal_ros.core.camera import DISTORTION_NAMES  # noqa: E402
 from armcal_ros.core.evaluation import triangulate  # noqa: E402
-from armcal_ros.core.priors import PriorSettings  # noqa: E402
+from armcal_ros.core.priors import PointPrior, PriorSettings  # noqa: E402
 from armcal_ros.core.uncertainty import rms_error_mm, triangulation_covariance  # noqa: E402
 from armcal_ros.sim.cells import CELLS  # noqa: E402
 from armcal_ros.sim.robot_points import make_robot_problem  # noqa: E402
@@ -93,53 +95,68 @@ def run_case(args):
     uv_true = [truth[c.name].project(prob.test_points) for c in prob.specs]
     s = SolverSettings(pixel_sigma=0.5, estimate_noise=True)
     out = {}
-    for m in models:
+    solved = {}
+    for m in sorted(models, key=lambda m: m != 'auto'):
         t0 = time.perf_counter()
         res = calibrate(prob.specs, prob.measured, prob.obs, PriorSettings(m), s,
                         kinematics=prob.kinematics)
+        solved[m] = (res, time.perf_counter() - t0)
+    ref = solved.get('auto')
+    reference = None
+    if ref is not None and ref[0].selection is not None:
+        reference = PointPrior(prob.measured, ref[0].selection.settings, prob.kinematics)
+    for m in models:
+        res, elapsed = solved[m]
         adj = res.adjustment
         if adj is None or not res.success:
             out[m] = dict(failed=res.message)
             continue
-        z = {}
-        for name, e in adj.cameras.items():
-            for k, v in z_scores(e.camera, e.std, truth[name]).items():
-                z.setdefault(k, []).append(float(v))
-        cams = adj.camera_list()
-        pred, _, seen = triangulation_covariance(cams, adj.covariance, adj.parameter_names,
-                                                 prob.test_points)
-        uv = [np.where(seen[:, None] >= 2, u, np.nan) for u in uv_true]
-        for j, c in enumerate(cams):
-            inside = c.in_front(prob.test_points)
-            uv[j][~inside] = np.nan
-        X = triangulate(cams, uv)
-        err = np.linalg.norm(X - prob.test_points, axis=1)
-        ok = np.isfinite(err) & (seen >= 2)
-        out[m] = dict(z=z, sigma_px=res.pixel_sigma, source=res.noise_source,
+        out[m] = dict(sigma_px=res.pixel_sigma, source=res.noise_source,
                       chosen=(res.selection.settings.model if res.selection else m),
-                      predicted_mm=rms_error_mm(pred[ok]),
-                      measured_mm=float(1e3 * np.sqrt(np.mean(err[ok] ** 2))),
-                      time_s=time.perf_counter() - t0)
+                      time_s=elapsed)
+        variants = {'reported': adj}
+        if reference is not None and m != 'auto':
+            cov = covariance_under(adj, prob.measured, prob.obs,
+                                   replace(s, pixel_sigma=res.pixel_sigma), reference)
+            variants['widened'] = with_covariance(adj, cov)
+        for key, a in variants.items():
+            z = {}
+            for name, e in a.cameras.items():
+                for k, v in z_scores(e.camera, e.std, truth[name]).items():
+                    z.setdefault(k, []).append(float(v))
+            cams = a.camera_list()
+            pred, _, seen = triangulation_covariance(cams, a.covariance, a.parameter_names,
+                                                     prob.test_points)
+            uv = [np.where(seen[:, None] >= 2, u, np.nan) for u in uv_true]
+            for j, c in enumerate(cams):
+                uv[j][~c.in_front(prob.test_points)] = np.nan
+            X = triangulate(cams, uv)
+            err = np.linalg.norm(X - prob.test_points, axis=1)
+            ok = np.isfinite(err) & (seen >= 2)
+            out[m][key] = dict(z=z, predicted_mm=rms_error_mm(pred[ok]),
+                               measured_mm=float(1e3 * np.sqrt(np.mean(err[ok] ** 2))))
     return scenario, seed, out
 
 
-def summarise(cases, scenario, model):
-    """Pool one scenario and model over the seeds."""
-    runs = [c[model] for c in cases if model in c and 'z' in c[model]]
+def summarise(cases, model, variant='reported'):
+    """Pool one scenario's model over the seeds (``variant``: reported or widened)."""
+    runs = [c[model] for c in cases if model in c and variant in c[model]]
     if not runs:
         return None
     row = {}
     every = []
     for g, keys in GROUPS.items():
-        v = np.array([x for r in runs for k in keys for x in r['z'].get(k, [])])
+        v = np.array([x for r in runs for k in keys for x in r[variant]['z'].get(k, [])])
         row[g] = float(np.sqrt(np.mean(v ** 2))) if v.size else float('nan')
         every.append(v)
     v = np.concatenate(every)
     row.update(rms_z=float(np.sqrt(np.mean(v ** 2))), within1=float(np.mean(np.abs(v) < 1)),
                within2=float(np.mean(np.abs(v) < 2)), n_z=int(v.size),
                sigma_px=float(np.median([r['sigma_px'] for r in runs])),
-               predicted_mm=float(np.sqrt(np.mean([r['predicted_mm'] ** 2 for r in runs]))),
-               measured_mm=float(np.sqrt(np.mean([r['measured_mm'] ** 2 for r in runs]))),
+               predicted_mm=float(np.sqrt(np.mean([r[variant]['predicted_mm'] ** 2
+                                                   for r in runs]))),
+               measured_mm=float(np.sqrt(np.mean([r[variant]['measured_mm'] ** 2
+                                                  for r in runs]))),
                seeds=len(runs), failed=sum(1 for c in cases if 'failed' in c.get(model, {})),
                time_s=float(np.mean([r['time_s'] for r in runs])))
     if model == 'auto':
@@ -167,17 +184,18 @@ def main():
     rows, raw = [], {}
     for sc in args.scenarios:
         for m in args.models:
-            r = summarise(by[sc], sc, m)
-            if r is None:
-                continue
-            raw.setdefault(sc, {})[m] = r
-            label = m if m != 'auto' else 'auto (' + ', '.join(
-                f'{k} {v}' for k, v in r['chosen'].items()) + ')'
-            rows.append([sc, label, f'{r["sigma_px"]:.3f}'] +
-                        [f'{r[g]:.2f}' for g in GROUPS] +
-                        [f'{r["rms_z"]:.2f}', f'{100 * r["within1"]:.0f}',
-                         f'{100 * r["within2"]:.0f}', f'{r["predicted_mm"]:.3f}',
-                         f'{r["measured_mm"]:.3f}'])
+            for variant in ('reported', 'widened'):
+                r = summarise(by[sc], m, variant)
+                if r is None:
+                    continue
+                raw.setdefault(sc, {}).setdefault(m, {})[variant] = r
+                label = m if m != 'auto' else 'auto (' + ', '.join(
+                    f'{k} {v}' for k, v in r['chosen'].items()) + ')'
+                rows.append([sc, label, variant, f'{r["sigma_px"]:.3f}'] +
+                            [f'{r[g]:.2f}' for g in GROUPS] +
+                            [f'{r["rms_z"]:.2f}', f'{100 * r["within1"]:.0f}',
+                             f'{100 * r["within2"]:.0f}', f'{r["predicted_mm"]:.3f}',
+                             f'{r["measured_mm"]:.3f}'])
     md = [
         '## Uncertainty: reported standard deviations against the truth (bench/uncertainty.py)',
         '',
@@ -190,7 +208,7 @@ def main():
         'as the reported covariance predicts it and as measured. Truth in the robot\'s own '
         f'base frame. {time.perf_counter() - t0:.0f} s on {args.jobs} processes.',
         '',
-        table(['scenario', 'model', 'sigma px'] + [f'z {g}' for g in GROUPS] +
+        table(['scenario', 'model', 'covariance', 'sigma px'] + [f'z {g}' for g in GROUPS] +
               ['RMS z', 'in 1 sigma %', 'in 2 sigma %', 'predicted mm', 'measured mm'], rows),
         '',
         f'Measured on {machine()}.',

@@ -117,3 +117,42 @@ def test_kinematic_leverages_match_the_whole_normal_matrix(prob):
             Jk[:, C + G + 3 * i:C + G + 3 * i + 3] = J.d_point[0]
             want = np.trace(Jk @ Sigma @ Jk.T) / SETTINGS.pixel_sigma ** 2
             assert h[k] == pytest.approx(want, rel=1e-6, abs=1e-9), k
+
+
+@pytest.mark.parametrize('model', ['fixed', 'independent', 'correlated', 'kinematic'])
+def test_camera_sensitivity_is_the_estimates_derivative(model):
+    # Noise-free images of the true points and the robot's points at the truth: perturb the
+    # robot's points along a random direction, solve again, and the cameras move by D dX^.
+    from armcal_ros.core.kinematic_prior import KinematicData
+    p = make_robot_problem('geometric', 25, 4, pixel_sigma=0.0, n_test=10)
+    uv = np.zeros_like(p.obs.uv)
+    for j, c in enumerate(p.truth.values() if isinstance(p.truth, dict) else p.truth):
+        m = p.obs.camera == j
+        uv[m] = c.project(p.true_points[p.obs.point[m]])
+    obs = adj.Observations(p.obs.camera, p.obs.point, uv)
+    chain = p.robot.chain
+    kin = KinematicData(chain.jacobian_errors(p.q, p.robot.point), chain.error_names)
+    kw = dict(kinematics=kin) if model == 'kinematic' else {}
+    ps = PriorSettings(model)
+    tight = SolverSettings(pixel_sigma=0.3, max_gate_rounds=0, gate_min_px=1e9, ftol=1e-15,
+                           xtol=1e-15, gtol=1e-20, max_iterations=200)
+    base = adjust(p.cameras, p.true_points, obs, ps, tight, **kw)
+    cams = base.camera_list()
+    prior = PointPrior(p.true_points, ps, kin if model == 'kinematic' else None)
+    problem = adj._Problem(cams, p.true_points, obs, prior, tight, base.inliers)
+    g = base.global_parameters
+    cov = np.linalg.inv(problem.reduced_matrix(cams, base.points, g))
+    D = problem.camera_sensitivity(cams, base.points, g, cov)
+    rng = np.random.default_rng(0)
+    dX = rng.normal(0, 1e-6, p.true_points.shape)
+    moved = []
+    for sign in (1, -1):
+        r = adjust(cams, p.true_points + sign * dX, obs, ps, tight,
+                   points_init=None if model == 'fixed' else base.points, globals_init=g, **kw)
+        moved.append(np.concatenate([np.concatenate([
+            c.intrinsics(), c.dist[problem.layout.dist_idx]]) for c in r.camera_list()]))
+    fd = (moved[0] - moved[1]) / 2
+    pred = np.einsum('cnk,nk->c', D, dX)
+    pc = problem.layout.per_camera
+    intr = np.concatenate([np.arange(j * pc, j * pc + pc - 6) for j in range(len(cams))])
+    np.testing.assert_allclose(pred[intr], fd, rtol=2e-2, atol=1e-3 * np.max(np.abs(fd)))

@@ -512,6 +512,81 @@ class _Problem:
         logdet_p = -3.0 * 2.0 * float(np.sum(np.log(np.diag(self.prior._chol[0]))))
         return U - Wm @ cho_solve(F, Wm.T, check_finite=False), logdet_v, logdet_p
 
+    def _point_blocks(self, cams, X, g, T):
+        """
+        Return L (n, T, 3), L_i = B_i V^-1 restricted to point i, and (V^-1)_ii (n, 3, 3).
+
+        B_i (T x 3) couples point i to the cameras (W_i) and, under a global prior, to the
+        global parameters (-p_i A_i^T); T is the size of the reduced (camera, global) system.
+        Under the exact correlated prior V is dense and L_i takes every point's column.
+        """
+        _, _, W, Vb, _, _ = self.normal_equations(cams, X, g)
+        C, n = self.layout.size, self.n
+        if self.prior.kind == 'dense':
+            V = self.P_dense.copy()
+            ii = np.arange(n)
+            for a in range(3):
+                for b in range(3):
+                    V[3 * ii + a, 3 * ii + b] += Vb[:, a, b]
+            Vinv = cho_solve(cho_factor(V, lower=True, check_finite=False),
+                             np.eye(3 * n), check_finite=False)
+            Einv = np.stack([Vinv[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(n)])
+            L = (W.reshape(C, 3 * n) @ Vinv).reshape(C, n, 3).transpose(1, 0, 2)
+            return L, Einv
+        if self.prior.kind == 'block':
+            V = Vb + self.prior.block_precision()
+        else:
+            V = Vb + self.prior.precision[:, None, None] * np.eye(3)
+        Einv = np.linalg.inv(V)
+        L = np.einsum('cnk,nkl->ncl', W, Einv)                           # (n, C, 3)
+        G = T - C
+        if G:
+            # B_g,i = -p_i A_i^T: the prior couples point i to the globals.
+            Lg = -self.prior.precision[:, None, None] * np.einsum(
+                'nkg,nkl->ngl', self.prior.design_matrix(), Einv)          # (n, G, 3)
+            L = np.concatenate([L, Lg], axis=1)
+        return L, Einv
+
+    def camera_sensitivity(self, cams, X, g, cov):
+        """
+        Return D (C, n, 3): how the estimated camera parameters move with the robot's points.
+
+        D_i = d c^ / d X^_i at the solution, from the derivative of the stationarity
+        condition: without points to adjust (``fixed``) D = -S^-1 W (the cameras see X^
+        directly); with points, X^ enters only through the prior (x - X^ - A g)^T P (...), so
+        d phi^ / d X^ = Sigma [0; -A^T P; P] over (cameras, globals, points) and the camera
+        rows are (Sigma_cx - Sigma_cg A^T) P.  ``cov`` is S^-1 over (cameras, globals).
+        """
+        lay = self.layout
+        C, n = lay.size, self.n
+        if not self.optimise_points:
+            W = np.zeros((C, n, 3))
+            inv_s2 = 1.0 / self.s.pixel_sigma ** 2
+            pc = lay.per_camera
+            for j, idx in enumerate(self.by_camera):
+                if idx.size == 0:
+                    continue
+                c = cams[j]
+                pts = self.obs.point[idx]
+                J = project_with_jacobians(c.intrinsics(), c.dist, c.rotation, c.translation,
+                                           X[pts])
+                r = J.uv - self.obs.uv[idx]
+                w = weights(np.sum(r * r, axis=1), self.s.loss, self.s.loss_scale) * inv_s2
+                blocks = np.matmul((lay.camera_jacobian(J) * w[:, None, None]).transpose(
+                    0, 2, 1), J.d_point)                                  # (m, pc, 3)
+                np.add.at(W, (slice(j * pc, (j + 1) * pc), pts), blocks.transpose(1, 0, 2))
+            return -np.einsum('cd,dnk->cnk', cov[:C, :C], W)
+        L, _ = self._point_blocks(cams, X, g, cov.shape[0])
+        Sx = -np.einsum('ct,ntk->cnk', cov[:C, :], L)                    # Sigma_cx
+        kind = self.prior.kind
+        if kind == 'dense':
+            return (Sx.reshape(C, 3 * n) @ self.P_dense).reshape(C, n, 3)
+        if kind == 'block':
+            return np.einsum('cnk,nkl->cnl', Sx, self.prior.block_precision())
+        if cov.shape[0] > C:
+            Sx = Sx - np.einsum('cg,nkg->cnk', cov[:C, C:], self.prior.design_matrix())
+        return Sx * self.prior.precision[None, :, None]
+
     def leverages(self, cams, X, g, cov):
         """
         Leverage h_k of each observation (0 for inactive ones): its share of the fit.
@@ -531,38 +606,11 @@ class _Problem:
         L_i^T S^-1 L_i.  V is block-diagonal except under the exact correlated prior, whose
         dense V^-1 is formed once here.
         """
-        _, _, W, Vb, _, _ = self.normal_equations(cams, X, g)
         lay = self.layout
-        pc, C, n = lay.per_camera, lay.size, self.n
-        T = cov.shape[0]
+        pc = lay.per_camera
         h = np.zeros(len(self.obs))
-        L = Einv = None
         if self.optimise_points:
-            kind = self.prior.kind
-            if kind == 'dense':
-                V = self.P_dense.copy()
-                ii = np.arange(n)
-                for a in range(3):
-                    for b in range(3):
-                        V[3 * ii + a, 3 * ii + b] += Vb[:, a, b]
-                Vinv = cho_solve(cho_factor(V, lower=True, check_finite=False),
-                                 np.eye(3 * n), check_finite=False)
-                Einv = np.stack([Vinv[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(n)])
-                L = (W.reshape(C, 3 * n) @ Vinv).reshape(C, n, 3).transpose(1, 0, 2)
-            else:
-                if kind == 'block':
-                    V = Vb + self.prior.block_precision()
-                else:
-                    V = Vb + self.prior.precision[:, None, None] * np.eye(3)
-                Einv = np.linalg.inv(V)
-                L = np.einsum('cnk,nkl->ncl', W, Einv)                   # (n, C, 3)
-                G = T - C
-                if G:
-                    # B_g,i = -p_i A_i^T: the prior couples point i to the globals.
-                    A = np.stack([self.prior.design.apply(e) for e in np.eye(G)], axis=2)
-                    Lg = -self.prior.precision[:, None, None] * np.einsum(
-                        'nkg,nkl->ngl', A, Einv)                           # (n, G, 3)
-                    L = np.concatenate([L, Lg], axis=1)
+            L, Einv = self._point_blocks(cams, X, g, cov.shape[0])
             # Sigma_xx_ii for every point, once.
             Sxx = Einv + np.einsum('ntk,ts,nsl->nkl', L, cov, L, optimize=True)
         inv_s2 = 1.0 / self.s.pixel_sigma ** 2
@@ -811,33 +859,106 @@ def _safe_inverse(S):
         return np.linalg.pinv(S)
 
 
+def _camera_std(c, C, layout):
+    """Standard deviations of one camera's parameters, centre and rotation from its block C."""
+    nd = len(layout.dist_idx)
+    sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+    std = dict(zip(INTRINSIC_NAMES, sd[:4]))
+    for k, i in enumerate(layout.dist_idx):
+        std[DISTORTION_NAMES[i]] = float(sd[4 + k])
+    # Camera centre C = -R^T t with R <- exp(w) R, t <- t + dt:
+    # dC/dw = -R^T [t]x, dC/dt = -R^T (first order at w = 0).
+    Jc = np.hstack([-c.rotation.T @ skew(c.translation), -c.rotation.T])
+    Cp = C[4 + nd:, 4 + nd:]
+    cc = Jc @ Cp @ Jc.T
+    for a, ax in enumerate('xyz'):
+        std[f'center_{ax}'] = float(np.sqrt(max(cc[a, a], 0.0)))
+        std[f'rot_{ax}'] = float(sd[4 + nd + a])
+    return {k: float(v) for k, v in std.items()}
+
+
+def _error_quadratic(D, terms):
+    """Return D Sigma D^T (C, C) for D (C, n, 3) and a prior's error covariance ``terms``."""
+    kind, data = terms
+    if kind == 'none':
+        return np.zeros((D.shape[0], D.shape[0]))
+    if kind == 'blocks':
+        return np.einsum('cnk,nkl,dnl->cd', D, data, D, optimize=True)
+    if kind == 'kron':
+        M = np.einsum('nm,dmk->dnk', data, D, optimize=True)
+        return np.einsum('cnk,dnk->cd', D, M, optimize=True)
+    var, A = data
+    DA = np.einsum('cnk,nkg->cg', D, A, optimize=True)
+    return np.einsum('cnk,n,dnk->cd', D, var, D, optimize=True) + DA @ DA.T
+
+
+def covariance_under(result: 'AdjustmentResult', measured, obs: Observations,
+                     settings: 'SolverSettings', reference: PointPrior) -> np.ndarray:
+    """
+    Camera covariance of ``result``'s estimate if the robot's point errors follow ``reference``.
+
+    The estimate c^ depends on the robot's points X^ through D = dc^/dX^
+    (:meth:`_Problem.camera_sensitivity`).  Its reported covariance S^-1 assumes the errors
+    X^ - X have the covariance of the model's own prior, Sigma_own (zero for ``fixed``); if
+    they have Sigma_ref instead, the estimate's covariance is, to first order,
+
+        S^-1 + D (Sigma_ref - Sigma_own) D^T
+
+    (the sandwich of a misspecified linear-Gaussian model).  So a model that leaves part of
+    the arm's error undescribed - ``fixed`` under any arm error, ``kinematic`` under a smooth
+    bias field - widens by what that part does to its cameras, given a ``reference`` prior that
+    describes the errors (the evidence's choice, :mod:`armcal_ros.core.model_selection`).
+    ``settings`` must carry the image noise ``result`` was weighted with.  Returns the camera
+    block (C, C); the correction is kept where it widens (its positive part) and dropped
+    where the model's own prior already covers more than the reference.
+    """
+    cams = result.camera_list()
+    prior = result.prior
+    problem = _Problem(cams, np.asarray(measured, float), obs, prior, settings, result.inliers)
+    g = result.global_parameters
+    S = problem.reduced_matrix(cams, result.points, g)
+    cov = _safe_inverse(S)
+    D = problem.camera_sensitivity(cams, result.points, g, cov)
+    C = problem.layout.size
+    extra = _error_quadratic(D, reference.error_covariance()) - \
+        _error_quadratic(D, prior.error_covariance())
+    # Only widen: where the model's own prior is the wider one, its covariance stands (the
+    # reference's scale is tuned on what the images see, not on what they cannot).
+    w, V = np.linalg.eigh(0.5 * (extra + extra.T))
+    return cov[:C, :C] + (V * np.maximum(w, 0.0)) @ V.T
+
+
+def with_covariance(result: 'AdjustmentResult', cov) -> 'AdjustmentResult':
+    """Return a copy of ``result`` whose camera covariance and standard deviations are ``cov``."""
+    from copy import copy
+    out = copy(result)
+    out.covariance = np.asarray(cov, float)
+    n = len(result.cameras)
+    layout = _Layout(n, [p.split('/', 1)[1] for p in result.parameter_names[
+        4:len(result.parameter_names) // max(n, 1) - 6]])
+    pc = layout.per_camera
+    out.cameras = {}
+    for j, (name, e) in enumerate(result.cameras.items()):
+        e2 = copy(e)
+        e2.std = _camera_std(e.camera, out.covariance[j * pc:(j + 1) * pc, j * pc:(j + 1) * pc],
+                             layout)
+        out.cameras[name] = e2
+    return out
+
+
 def _camera_estimates(cams, obs, X, active, cov, layout, leverage=None, settings=None):
     d = _all_residual_norms(cams, X, obs)
     if leverage is not None:
         # Robust weights (no 1/s^2): a down-weighted residual counts as the loss counts it.
         w_rob = weights(d ** 2, settings.loss, settings.loss_scale)
     pc = layout.per_camera
-    nd = len(layout.dist_idx)
     out = {}
     for j, c in enumerate(cams):
         sel = obs.camera == j
         inl = sel & active
-        C = cov[j * pc:(j + 1) * pc, j * pc:(j + 1) * pc]
-        sd = np.sqrt(np.maximum(np.diag(C), 0.0))
-        std = dict(zip(INTRINSIC_NAMES, sd[:4]))
-        for k, i in enumerate(layout.dist_idx):
-            std[DISTORTION_NAMES[i]] = float(sd[4 + k])
-        # Camera centre C = -R^T t with R <- exp(w) R, t <- t + dt:
-        # dC/dw = -R^T [t]x, dC/dt = -R^T (first order at w = 0).
-        Jc = np.hstack([-c.rotation.T @ skew(c.translation), -c.rotation.T])
-        Cp = C[4 + nd:, 4 + nd:]
-        cc = Jc @ Cp @ Jc.T
-        for a, ax in enumerate('xyz'):
-            std[f'center_{ax}'] = float(np.sqrt(max(cc[a, a], 0.0)))
-            std[f'rot_{ax}'] = float(sd[4 + nd + a])
+        std = _camera_std(c, cov[j * pc:(j + 1) * pc, j * pc:(j + 1) * pc], layout)
         rms = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float('nan')
-        est = CameraEstimate(c, {k: float(v) for k, v in std.items()},
-                             int(sel.sum()), int(inl.sum()), rms)
+        est = CameraEstimate(c, std, int(sel.sum()), int(inl.sum()), rms)
         if leverage is not None and inl.any():
             est.redundancy = float(2 * inl.sum() - np.sum(leverage[inl]))
             if est.redundancy > REDUNDANCY_FLOOR:

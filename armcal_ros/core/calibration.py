@@ -14,13 +14,13 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from armcal_ros.core.adjustment import (AdjustmentResult, Observations, SolverSettings,
-                                        adjust)
+from armcal_ros.core.adjustment import (AdjustmentResult, covariance_under, Observations,
+                                        SolverSettings, adjust, with_covariance)
 from armcal_ros.core.camera import Camera
 from armcal_ros.core.initialisation import (initialise_camera, initialise_with_intrinsics,
                                             InitResult)
 from armcal_ros.core.model_selection import ModelSelection, select_model
-from armcal_ros.core.priors import KINEMATIC_MODELS, PriorSettings
+from armcal_ros.core.priors import KINEMATIC_MODELS, PointPrior, PriorSettings
 
 #: Initial LM damping of the stage after ``fixed`` (see :func:`calibrate`).
 WARM_LAMBDA = 1e-6
@@ -63,6 +63,9 @@ class CalibrationResult:
     #: or 'pooled detections' (:mod:`armcal_ros.core.image_noise`).
     pixel_sigma: float = float('nan')
     noise_source: str = 'given'
+    #: How the camera covariance was obtained: 'model' (the adjustment's own, S^-1) or
+    #: 'widened under <reference model>' (:func:`~armcal_ros.core.adjustment.covariance_under`).
+    uncertainty: str = 'model'
 
     @property
     def cameras(self):
@@ -76,7 +79,8 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
               prior: PriorSettings = None, settings: SolverSettings = None,
               initial: Optional[Dict[str, Camera]] = None, rng=None,
               kinematics=None, globals_init=None, points_init=None,
-              pooled_sigma_px=None) -> CalibrationResult:
+              pooled_sigma_px=None, reference: Optional[PriorSettings] = None
+              ) -> CalibrationResult:
     """
     Calibrate the cameras ``specs`` from robot points ``measured`` (N, 3) and observations.
 
@@ -90,7 +94,11 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
     :func:`~armcal_ros.core.model_selection.select_model` after the ``fixed`` stage
     (``result.selection`` says what was chosen and why); ``pooled_sigma_px`` is its image
     noise where the free network cannot estimate one
-    (:func:`~armcal_ros.core.image_noise.pooled_pixel_sigma`).
+    (:func:`~armcal_ros.core.image_noise.pooled_pixel_sigma`).  ``reference`` (a prior that
+    describes the arm's errors, normally ``auto``'s choice on the same data) widens a single
+    model's camera covariance by what the errors it does not describe do to its cameras
+    (:func:`~armcal_ros.core.adjustment.covariance_under`; docs/NOISE_MODELS.md, "Honest
+    uncertainty").
     """
     t0 = time.perf_counter()
     prior = (prior or PriorSettings()).validate()
@@ -178,6 +186,16 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
         if settings.estimate_noise:
             final, sigma, source = _reweighted(final, measured, sub, prior, model_settings,
                                                kin, pooled_sigma_px, stages)
+    uncertainty = 'model'
+    if reference is not None and prior.model != 'auto' and final.status != 'failed' and \
+            reference != prior and (reference.model not in KINEMATIC_MODELS or
+                                    kinematics is not None):
+        ref = PointPrior(measured, reference,
+                         kinematics if reference.model in KINEMATIC_MODELS else None)
+        cov = covariance_under(final, measured, sub, replace(model_settings, pixel_sigma=sigma),
+                               ref)
+        final = with_covariance(final, cov)
+        uncertainty = f'widened under {reference.model}'
     failed = [r.message for r in init.values() if not r.success]
     msg = final.message if not failed else final.message + '; skipped: ' + '; '.join(failed)
     status = final.status if not failed else 'partial'
@@ -186,7 +204,7 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
     return CalibrationResult(final.success, status, msg, final, init, stages,
                              time.perf_counter() - t0,
                              {specs[j].name: k for k, j in enumerate(keep)}, selection,
-                             float(sigma), source)
+                             float(sigma), source, uncertainty)
 
 
 def variance_factor_sigma(result: AdjustmentResult) -> float:

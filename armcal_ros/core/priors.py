@@ -208,6 +208,35 @@ class PointPrior:
         D = np.asarray(X, float) - self.measured - self.global_offsets(g)
         return float(np.sum(self.precision * np.sum(D * D, axis=1)) + g @ g)
 
+    def design_matrix(self):
+        """Return the global design A (N, 3, G), densely (kind 'global'; cached)."""
+        if self.kind != 'global':
+            raise ValueError(f'design_matrix needs a global prior, this one is {self.kind}')
+        if getattr(self, '_A', None) is None:
+            G = self.n_global
+            self._A = (np.stack([self.design.apply(e) for e in np.eye(G)], axis=2) if G
+                       else np.zeros((self.n, 3, 0)))
+        return self._A
+
+    def error_covariance(self):
+        """
+        The covariance this prior gives the robot's point errors X^ - X, in a compact form.
+
+        ('none', None) for ``fixed`` (the points are exact); ('blocks', (N, 3, 3)) for
+        ``independent``; ('kron', K (N, N)), the covariance being K (x) I_3, for the exact
+        correlated prior; ('lowrank', (var (N,), A (N, 3, G))), the covariance being
+        diag(var) (x) I_3 + A A^T, for the global priors (kinematic, hybrid, the lattice
+        field: their design is whitened, g ~ N(0, I)).
+        """
+        if self.kind == 'fixed':
+            return 'none', None
+        if self.kind == 'block':
+            return 'blocks', np.linalg.inv(self._blocks)
+        if self.kind == 'dense':
+            L = np.tril(self._chol[0])
+            return 'kron', L @ L.T
+        return 'lowrank', (1.0 / self.precision, self.design_matrix())
+
     def block_precision(self):
         """Precision as (N, 3, 3) blocks (kind 'block' only)."""
         if self.kind != 'block':

@@ -15,7 +15,7 @@ import numpy as np
 
 from armcal_ros.core.calibration import CalibrationResult
 from armcal_ros.core.camera import Camera
-from armcal_ros.core.uncertainty import pose_covariance
+from armcal_ros.core.uncertainty import pose_covariance, rms_error_mm, triangulation_covariance
 
 POSE_PARAMETERS = ('wx', 'wy', 'wz', 'tx', 'ty', 'tz')
 
@@ -34,6 +34,11 @@ class CameraCalibration:
     #: axis; NaN without redundancy) - :class:`~armcal_ros.core.adjustment.CameraEstimate`.
     redundancy: float = float('nan')
     sigma_px: float = float('nan')
+    #: RMS 3-D error (mm, one sigma) that this camera's own parameter uncertainty puts into
+    #: points triangulated over the workspace the samples covered
+    #: (:func:`~armcal_ros.core.uncertainty.triangulation_covariance`); NaN where no other
+    #: camera shares its view.
+    workspace_error_mm: float = float('nan')
 
 
 @dataclass
@@ -63,7 +68,8 @@ class Calibration:
                 pose_covariance=[float(v) for v in np.asarray(c.pose_covariance).ravel()],
                 rms_px=float(c.rms_px), n_observations=int(c.n_observations),
                 n_inliers=int(c.n_inliers), redundancy=_json_float(c.redundancy),
-                sigma_px=_json_float(c.sigma_px))
+                sigma_px=_json_float(c.sigma_px),
+                workspace_error_mm=_json_float(c.workspace_error_mm))
         return dict(model=self.model, cost=float(self.cost), n_samples=int(self.n_samples),
                     solve_time_s=float(self.solve_time_s), solved_at=float(self.solved_at),
                     status=self.status, message=self.message,
@@ -81,12 +87,20 @@ def calibration_from_result(result: CalibrationResult, n_samples, hyper=None) ->
     adj = result.adjustment
     cams = {}
     names = adj.parameter_names
+    hyper = dict(hyper or {})
+    own, total = {}, float('nan')
+    if adj.points is not None and len(adj.points):
+        cov, own, _ = triangulation_covariance(adj.camera_list(), adj.covariance, names,
+                                               adj.points)
+        total = rms_error_mm(cov)
+    hyper['triangulation_error_mm'] = _json_float(total)
     for name, est in adj.cameras.items():
         idx = [names.index(f'{name}/{p}') for p in POSE_PARAMETERS]
         cov = adj.covariance[np.ix_(idx, idx)]
         cams[name] = CameraCalibration(est.camera.copy(), dict(est.std),
                                        pose_covariance(est.camera, cov), est.rms_px,
                                        est.n_observations, est.n_inliers, est.redundancy,
-                                       est.sigma_px)
+                                       est.sigma_px,
+                                       rms_error_mm(own[name]) if name in own else float('nan'))
     return Calibration(cams, adj.model, adj.cost, n_samples, result.time_s, time.time(),
-                       result.status, result.message, dict(hyper or {}))
+                       result.status, result.message, hyper)

@@ -58,7 +58,8 @@ def load_calibration(directory) -> Calibration:
         out[cam.name] = CameraCalibration(
             cam, dict(d['std']), np.asarray(d['pose_covariance'], float).reshape(6, 6),
             float(d['rms_px']), int(d['n_observations']), int(d['n_inliers']),
-            _nan_if_none(d.get('redundancy')), _nan_if_none(d.get('sigma_px')))
+            _nan_if_none(d.get('redundancy')), _nan_if_none(d.get('sigma_px')),
+            _nan_if_none(d.get('workspace_error_mm')))
     return Calibration(out, doc['model'], doc['cost'], doc['n_samples'], doc['solve_time_s'],
                        doc['solved_at'], doc['status'], doc['message'],
                        doc.get('hyperparameters', {}))

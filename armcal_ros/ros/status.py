@@ -135,14 +135,16 @@ def camera_status(name, s: NodeState, node_name='armcal') -> Status:
     cam = c.camera
     values.update(fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy,
                   rms_px=float(c.rms_px), observations=int(c.n_observations),
-                  inliers=int(c.n_inliers))
+                  inliers=int(c.n_inliers), image_noise_px=float(c.sigma_px),
+                  workspace_error_mm=float(c.workspace_error_mm))
     for i, k in enumerate(('k1', 'k2', 'p1', 'p2', 'k3')):
         values[k] = float(cam.dist[i])
     for k, v in sorted(c.std.items()):
         values[f'std_{k}'] = float(v)
     return Status(OK, f'{node_name}: {name}',
                   f'reprojection RMS {c.rms_px:.3f} px over {c.n_inliers} of '
-                  f'{c.n_observations} observations', name,
+                  f'{c.n_observations} observations; expected 3-D error it adds over the '
+                  f'workspace {c.workspace_error_mm:.2f} mm', name,
                   {k: _fmt(v) for k, v in values.items()})
 
 
