@@ -860,7 +860,7 @@ def _safe_inverse(S):
 
 
 def _camera_std(c, C, layout):
-    """Standard deviations of one camera's parameters, centre and rotation from its block C."""
+    """Return the standard deviations of a camera's parameters, centre and rotation (block C)."""
     nd = len(layout.dist_idx)
     sd = np.sqrt(np.maximum(np.diag(C), 0.0))
     std = dict(zip(INTRINSIC_NAMES, sd[:4]))

@@ -220,7 +220,7 @@ class PointPrior:
 
     def error_covariance(self):
         """
-        The covariance this prior gives the robot's point errors X^ - X, in a compact form.
+        Return the covariance this prior gives the point errors X^ - X, in a compact form.
 
         ('none', None) for ``fixed`` (the points are exact); ('blocks', (N, 3, 3)) for
         ``independent``; ('kron', K (N, N)), the covariance being K (x) I_3, for the exact
