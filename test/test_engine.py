@@ -207,3 +207,25 @@ def test_a_fit_without_redundancy_sets_no_yardstick():
     # A calibration saved before redundancy was recorded: the RMS, as before.
     old = cam(0.4, float('nan'), float('nan'))
     assert 'reprojection RMS' in _residuals_worse(old, cam(1.5, 30.0, 1.6), 1.5, 0.3)
+
+
+def test_a_single_model_publishes_its_noise_reference_and_workspace_error():
+    # The fixed model on points with a smooth bias: its image noise estimated from its own
+    # residuals, its covariance widened under the prior auto chooses on the same samples
+    # (searched once, reused until the samples grow by half), and every camera carries the
+    # 3-D error its calibration adds over the workspace.
+    from dataclasses import replace
+    prob = make_problem(120, 5, bias_sigma=1e-3)
+    eng = _engine(prob, Clock(), _samples(prob), model='fixed', min_samples=10)
+    eng.settings = replace(eng.settings, solver=SolverSettings(pixel_sigma=0.5,
+                                                               estimate_noise=True))
+    out = eng.solve()
+    assert out.accepted, out.reason
+    h = out.calibration.hyperparameters
+    assert h['pixel_sigma_source'] == 'residuals' and 0.1 < h['pixel_sigma'] < 0.6
+    assert h['uncertainty'].startswith('widened under'), h
+    assert h['triangulation_error_mm'] > 0
+    assert all(np.isfinite(c.workspace_error_mm) and c.workspace_error_mm > 0
+               for c in out.calibration.cameras.values())
+    ref = eng._reference
+    assert eng.solve().accepted and eng._reference is ref       # not searched again
