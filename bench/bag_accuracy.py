@@ -49,7 +49,10 @@ def run_bag(label, bag, params, out_dir):
                           solve_s=res.outcome.time_s, chosen=chosen,
                           pixel_sigma=cal.hyperparameters.get('pixel_sigma'),
                           reason=cal.hyperparameters.get('auto_reason', ''))
+        h = cal.hyperparameters
         rows.append([label, len(front.store), model + (f' ({chosen})' if chosen else ''),
+                     f'{h.get("pixel_sigma", float("nan")):.3f} '
+                     f'({h.get("pixel_sigma_source", "given")})',
                      f'{sc.absolute_mm:.3f}', f'{sc.shape_mm:.3f}', f'{sc.centre_mm:.2f}',
                      f'{sc.focal_pct:.3f}', f'{res.outcome.time_s:.2f}'])
     return rows, raw
@@ -75,11 +78,13 @@ def main(argv=None):
     md = ['## Accuracy through the whole pipeline (bench/bag_accuracy.py)', '',
           'Simulated bags through detection, pairing and pooling, then every noise model on the '
           'same samples; scored against the simulator\'s cameras by triangulating 500 fresh '
-          f'workspace points. Measured on {machine()}, single-threaded BLAS. `auto` estimates '
-          'the image noise itself (free-network residuals; `pixel_sigma` 0.5 px is used by the '
-          'other rows); what it chose and the noise it used are below the table.', '',
-          table(['bag', 'samples', 'model', 'absolute mm', 'shape mm', 'centre mm', 'focal %',
-                 'solve s'], rows)]
+          f'workspace points. Measured on {machine()}, single-threaded BLAS. Every model '
+          'estimates the image noise (the node\'s default, `pixel_sigma: 0`): `auto` from the '
+          'free network, the others from their own residuals (variance factor, redundancy by '
+          'leverage) - the column "noise px" says which value and where from, so the rows '
+          'compare like with like; what `auto` chose is below the table.', '',
+          table(['bag', 'samples', 'model', 'noise px', 'absolute mm', 'shape mm',
+                 'centre mm', 'focal %', 'solve s'], rows)]
     md += ['', 'What `auto` chose and why:', '']
     for label, case in raw.items():
         md.append(f'- {label}: {case["auto"]["reason"]}')
