@@ -32,6 +32,7 @@ bench: $(STAMP)
 	$(PY) bench/bag_accuracy.py
 	$(PY) bench/cells.py
 	$(PY) bench/node.py
+	$(PY) bench/uncertainty.py
 	$(PY) bench/real_data.py
 
 clean:
