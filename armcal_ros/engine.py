@@ -389,7 +389,9 @@ class CalibrationEngine:
         sel = remap[arrays.camera_index] >= 0
         obs = Observations(remap[arrays.camera_index[sel]], arrays.point_index[sel],
                            arrays.uv[sel])
-        kw = dict(kinematics=kin if prior.model in KINEMATIC_MODELS + ('auto',) else None)
+        # Every model gets the arm's Jacobian when there is one: the kinematic ones and auto
+        # use it, the others need it for an uncertainty reference that is kinematic.
+        kw = dict(kinematics=kin)
         if searching or self.settings.solver.estimate_noise:
             kw['pooled_sigma_px'] = pooled_pixel_sigma(arrays.spread_px[sel],
                                                        arrays.n_frames[sel])
