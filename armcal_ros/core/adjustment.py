@@ -729,7 +729,7 @@ def _robust_sigma(d):
 def adjust(cameras: Sequence[Camera], measured, obs: Observations,
            prior_settings: PriorSettings = None, settings: SolverSettings = None,
            points_init=None, inliers=None, kinematics=None, globals_init=None,
-           prior: Optional[PointPrior] = None) -> AdjustmentResult:
+           prior: Optional[PointPrior] = None, redundancy: bool = True) -> AdjustmentResult:
     """
     Adjust ``cameras`` (initial estimates) and the points under the chosen prior.
 
@@ -738,7 +738,10 @@ def adjust(cameras: Sequence[Camera], measured, obs: Observations,
     ``kinematics`` (:class:`~armcal_ros.core.kinematic_prior.KinematicData`) is needed by the
     'kinematic' and 'hybrid' models; ``globals_init`` warm-starts their global parameters (the
     ``global_parameters`` of an earlier result with the same prior); ``prior`` passes a
-    prebuilt :class:`PointPrior` for these settings (to reuse its lattice).
+    prebuilt :class:`PointPrior` for these settings (to reuse its lattice).  ``redundancy``
+    False skips the leverages (CameraEstimate.redundancy and sigma_px stay NaN): a model
+    search's candidates do not need them, and under the exact correlated prior they cost a
+    dense inverse.
     Returns an :class:`AdjustmentResult`; never raises on numerical failure (status 'failed').
     """
     t0 = time.perf_counter()
@@ -802,8 +805,8 @@ def adjust(cameras: Sequence[Camera], measured, obs: Observations,
     cov = full_cov[:C, :C]
     names = problem.layout.names([c.name for c in cams])
     try:
-        lev = problem.leverages(cams, X, g, full_cov) if np.all(np.isfinite(full_cov)) \
-            else None
+        lev = problem.leverages(cams, X, g, full_cov) \
+            if redundancy and np.all(np.isfinite(full_cov)) else None
     except (LinAlgError, FloatingPointError, ValueError):
         lev = None
     estimates = _camera_estimates(cams, obs, X, active, cov, problem.layout, lev, settings)

@@ -79,7 +79,7 @@ class HeldOut:
         p0 = self.points0[train] if self.points0 is not None and ps.model != 'fixed' else None
         out = np.full(len(obs), np.nan)
         res = adjust(self.cameras, measured[train], sub, ps, self.settings, kinematics=kin,
-                     points_init=p0, globals_init=g0)
+                     points_init=p0, globals_init=g0, redundancy=False)
         if res.status == 'failed':
             return out
         hidx = np.flatnonzero(held)

@@ -95,7 +95,7 @@ def estimate_pixel_sigma(cameras, measured, obs: Observations, settings: SolverS
     settings = settings or SolverSettings()
     measured = np.asarray(measured, float)
     res = adjust(cameras, measured, obs, PriorSettings('independent', point_sigma=point_sigma),
-                 replace(settings, max_gate_rounds=0), inliers=inliers)
+                 replace(settings, max_gate_rounds=0), inliers=inliers, redundancy=False)
     active = res.inliers
     m = int(np.count_nonzero(active))
     if res.status == 'failed' or m == 0:

@@ -241,7 +241,8 @@ def select_model(cameras, measured, obs: Observations, base: PriorSettings = Non
                                                   ps.kinematic_scale)
         res = adjust(cameras, measured, obs, ps, quiet, inliers=inliers,
                      points_init=None if ps.model == 'fixed' else points0, globals_init=g0,
-                     kinematics=kinematics if ps.model in KINEMATIC_MODELS else None)
+                     kinematics=kinematics if ps.model in KINEMATIC_MODELS else None,
+                     redundancy=False)
         ok = bool(res.status != 'failed' and np.isfinite(res.log_evidence))
         c = Candidate(ps, res.log_evidence if ok else -np.inf, time.perf_counter() - t, ok,
                       result=res, cameras=res.camera_list())
