@@ -109,7 +109,9 @@ def main(argv=None):
                  'centre mm', 'focal %', 'RMS z', 'in 2 sigma %', 'solve s'], rows),
           '', 'RMS z, in 2 sigma: the published standard deviations against the simulator\'s '
           'cameras (fx, fy, cx, cy, k1, k2, centre and rotation per axis; 1 and 95 % when '
-          'honest), as in bench/uncertainty.py.']
+          'honest), as in bench/uncertainty.py. A single model\'s solve time includes the '
+          '`auto` search that gives its uncertainty reference (the node runs it on the first '
+          'solve and when the samples have grown by half) and its image-noise re-weighting.']
     md += ['', 'What `auto` chose and why:', '']
     for label, case in raw.items():
         md.append(f'- {label}: {case["auto"]["reason"]}')
