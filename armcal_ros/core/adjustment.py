@@ -291,6 +291,25 @@ class _Problem:
             self.H_gg = prior.design.gram(p[:, None, None] * np.eye(3)) + np.eye(self.n_global)
             self.H_gg_diag = np.diag(self.H_gg).copy()
 
+    def linearised(self, cams, X):
+        """
+        Yield (j, idx, pts, J, r, w) per camera with active observations.
+
+        idx the observations, pts their points, J their projection Jacobians at (cams, X),
+        r the residuals and w the weights (robust weight / s_px^2).
+        """
+        inv_s2 = 1.0 / self.s.pixel_sigma ** 2
+        for j, idx in enumerate(self.by_camera):
+            if idx.size == 0:
+                continue
+            c = cams[j]
+            pts = self.obs.point[idx]
+            J = project_with_jacobians(c.intrinsics(), c.dist, c.rotation, c.translation,
+                                       X[pts])
+            r = J.uv - self.obs.uv[idx]
+            w = weights(np.sum(r * r, axis=1), self.s.loss, self.s.loss_scale) * inv_s2
+            yield j, idx, pts, J, r, w
+
     def residuals(self, cams, X):
         """Squared pixel residual norms per active observation, by camera."""
         out = []
@@ -323,16 +342,7 @@ class _Problem:
         W = np.zeros((lay.size, n, 3)) if self.optimise_points else None
         Vb = np.zeros((n, 3, 3))
         g_x = np.zeros((n, 3))
-        inv_s2 = 1.0 / self.s.pixel_sigma ** 2
-        for j, idx in enumerate(self.by_camera):
-            if idx.size == 0:
-                continue
-            c = cams[j]
-            pts = self.obs.point[idx]
-            J = project_with_jacobians(c.intrinsics(), c.dist, c.rotation, c.translation,
-                                       X[pts])
-            r = J.uv - self.obs.uv[idx]
-            w = weights(np.sum(r * r, axis=1), self.s.loss, self.s.loss_scale) * inv_s2
+        for j, idx, pts, J, r, w in self.linearised(cams, X):
             Jc = lay.camera_jacobian(J)                          # (m, 2, pc)
             wJc = Jc * w[:, None, None]
             sl = slice(j * pc, (j + 1) * pc)
@@ -561,17 +571,8 @@ class _Problem:
         C, n = lay.size, self.n
         if not self.optimise_points:
             W = np.zeros((C, n, 3))
-            inv_s2 = 1.0 / self.s.pixel_sigma ** 2
             pc = lay.per_camera
-            for j, idx in enumerate(self.by_camera):
-                if idx.size == 0:
-                    continue
-                c = cams[j]
-                pts = self.obs.point[idx]
-                J = project_with_jacobians(c.intrinsics(), c.dist, c.rotation, c.translation,
-                                           X[pts])
-                r = J.uv - self.obs.uv[idx]
-                w = weights(np.sum(r * r, axis=1), self.s.loss, self.s.loss_scale) * inv_s2
+            for j, idx, pts, J, r, w in self.linearised(cams, X):
                 blocks = np.matmul((lay.camera_jacobian(J) * w[:, None, None]).transpose(
                     0, 2, 1), J.d_point)                                  # (m, pc, 3)
                 np.add.at(W, (slice(j * pc, (j + 1) * pc), pts), blocks.transpose(1, 0, 2))
@@ -613,16 +614,7 @@ class _Problem:
             L, Einv = self._point_blocks(cams, X, g, cov.shape[0])
             # Sigma_xx_ii for every point, once.
             Sxx = Einv + np.einsum('ntk,ts,nsl->nkl', L, cov, L, optimize=True)
-        inv_s2 = 1.0 / self.s.pixel_sigma ** 2
-        for j, idx in enumerate(self.by_camera):
-            if idx.size == 0:
-                continue
-            c = cams[j]
-            pts = self.obs.point[idx]
-            J = project_with_jacobians(c.intrinsics(), c.dist, c.rotation, c.translation,
-                                       X[pts])
-            r = J.uv - self.obs.uv[idx]
-            w = weights(np.sum(r * r, axis=1), self.s.loss, self.s.loss_scale) * inv_s2
+        for j, idx, pts, J, r, w in self.linearised(cams, X):
             Jc = lay.camera_jacobian(J)                                   # (m, 2, pc)
             sl = slice(j * pc, (j + 1) * pc)
             hk = np.einsum('mak,kl,mal->m', Jc, cov[sl, sl], Jc)
