@@ -42,6 +42,7 @@ dense QR, many times slower (bench/solver.py measures it).
 """
 
 import time
+from copy import copy
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence
 
@@ -548,12 +549,12 @@ class _Problem:
         else:
             V = Vb + self.prior.precision[:, None, None] * np.eye(3)
         Einv = np.linalg.inv(V)
-        L = np.einsum('cnk,nkl->ncl', W, Einv)                           # (n, C, 3)
+        L = np.matmul(W.transpose(1, 0, 2), Einv)                         # (n, C, 3)
         G = T - C
         if G:
             # B_g,i = -p_i A_i^T: the prior couples point i to the globals.
-            Lg = -self.prior.precision[:, None, None] * np.einsum(
-                'nkg,nkl->ngl', self.prior.design_matrix(), Einv)          # (n, G, 3)
+            Lg = -self.prior.precision[:, None, None] * np.matmul(
+                self.prior.design_matrix().transpose(0, 2, 1), Einv)       # (n, G, 3)
             L = np.concatenate([L, Lg], axis=1)
         return L, Einv
 
@@ -612,15 +613,17 @@ class _Problem:
         h = np.zeros(len(self.obs))
         if self.optimise_points:
             L, Einv = self._point_blocks(cams, X, g, cov.shape[0])
-            # Sigma_xx_ii for every point, once.
-            Sxx = Einv + np.einsum('ntk,ts,nsl->nkl', L, cov, L, optimize=True)
+            # Sigma_xx_ii = (V^-1)_ii + L_i^T S^-1 L_i for every point, once (one GEMM).
+            n, T = L.shape[0], L.shape[1]
+            LtS = (L.transpose(0, 2, 1).reshape(3 * n, T) @ cov).reshape(n, 3, T)
+            Sxx = Einv + np.matmul(LtS, L)
         for j, idx, pts, J, r, w in self.linearised(cams, X):
             Jc = lay.camera_jacobian(J)                                   # (m, 2, pc)
             sl = slice(j * pc, (j + 1) * pc)
             hk = np.einsum('mak,kl,mal->m', Jc, cov[sl, sl], Jc)
             if self.optimise_points:
                 Jx = J.d_point                                            # (m, 2, 3)
-                Scx = -np.einsum('kt,mtl->mkl', cov[sl, :], L[pts])     # (m, pc, 3)
+                Scx = -np.matmul(cov[sl, :], L[pts])                      # (m, pc, 3)
                 hk = hk + 2.0 * np.einsum('mak,mkl,mal->m', Jc, Scx, Jx) + \
                     np.einsum('mak,mkl,mal->m', Jx, Sxx[pts], Jx)
             h[idx] = w * hk
@@ -925,12 +928,12 @@ def covariance_under(result: 'AdjustmentResult', measured, obs: Observations,
 
 def with_covariance(result: 'AdjustmentResult', cov) -> 'AdjustmentResult':
     """Return a copy of ``result`` whose camera covariance and standard deviations are ``cov``."""
-    from copy import copy
     out = copy(result)
     out.covariance = np.asarray(cov, float)
-    n = len(result.cameras)
-    layout = _Layout(n, [p.split('/', 1)[1] for p in result.parameter_names[
-        4:len(result.parameter_names) // max(n, 1) - 6]])
+    # The free distortion terms are those named in the first camera's block.
+    first = next(iter(result.cameras), '') + '/'
+    local = [p[len(first):] for p in result.parameter_names if p.startswith(first)]
+    layout = _Layout(len(result.cameras), [p for p in local if p in DISTORTION_NAMES])
     pc = layout.per_camera
     out.cameras = {}
     for j, (name, e) in enumerate(result.cameras.items()):

@@ -51,6 +51,10 @@ class DenseDesign:
         """Return A g as (N, 3)."""
         return self.A @ g
 
+    def dense(self):
+        """Return A (N, 3, P)."""
+        return self.A
+
     def apply_T(self, Y):
         """Return sum_i A_i^T y_i for Y (N, 3): (P,)."""
         return self._flat.T @ Y.reshape(-1)
@@ -162,6 +166,13 @@ class LatticeField:
         """Return the field at the points, (N, 3)."""
         return self.features @ g.reshape(self.rank, 3)
 
+    def dense(self):
+        """Return A (N, 3, 3 r): A_i[k, 3 m + k] = features[i, m], zero elsewhere."""
+        out = np.zeros((self.n, 3, self.rank, 3))
+        for k in range(3):
+            out[:, k, :, k] = self.features
+        return out.reshape(self.n, 3, self.size)
+
     def evaluate(self, points, g):
         """Return the field at arbitrary points (M, 3)."""
         return self.features_at(points) @ g.reshape(self.rank, 3)
@@ -214,6 +225,10 @@ class StackedDesign:
     def apply(self, g):
         """Return A g, (N, 3)."""
         return sum(p.apply(x) for p, x in zip(self.parts, self.split(g)))
+
+    def dense(self):
+        """Return A (N, 3, G), the parts side by side."""
+        return np.concatenate([p.dense() for p in self.parts], axis=2)
 
     def apply_T(self, Y):
         """Return sum_i A_i^T y_i: (G,)."""

@@ -213,9 +213,7 @@ class PointPrior:
         if self.kind != 'global':
             raise ValueError(f'design_matrix needs a global prior, this one is {self.kind}')
         if getattr(self, '_A', None) is None:
-            G = self.n_global
-            self._A = (np.stack([self.design.apply(e) for e in np.eye(G)], axis=2) if G
-                       else np.zeros((self.n, 3, 0)))
+            self._A = (self.design.dense() if self.n_global else np.zeros((self.n, 3, 0)))
         return self._A
 
     def error_covariance(self):
