@@ -204,6 +204,18 @@ class CalibrationEngine:
         #: The factor of the target's points (a tag of estimated size: size over the guess).
         self.target_scale = 1.0
 
+    @property
+    def target_estimated(self) -> Optional[bool]:
+        """
+        Return whether the target's place is estimated (None: it has no place to report).
+
+        A board or tag has a pose on its link (given or estimated); a point marker has a place
+        only when a kinematic model estimates it (``point_place_guess``).
+        """
+        if self.settings.board is not None:
+            return bool(self.settings.board.estimate_mount)
+        return True if self.settings.point_place_guess is not None else None
+
     # -- inputs --------------------------------------------------------------------------
     def set_image_size(self, camera, width, height):
         """Record a camera's image size (from its images or its CameraInfo)."""
@@ -640,14 +652,11 @@ class CalibrationEngine:
             cal = self._current
         if cal is not None:
             written += write_calibration(directory, cal, self.settings.base_frame)
-        board = self.settings.board
         with self._lock:
             T, std, scale = self.T_link_target, self.mount_std, self.target_scale
-        estimated = (board.estimate_mount if board is not None
-                     else self.settings.point_place_guess is not None)
-        if (board is not None or estimated) and T is not None and cal is not None:
+        if self.target_estimated is not None and T is not None and cal is not None:
             written.append(write_target(directory, T, std, self.settings.marker_link,
-                                        estimated, scale))
+                                        self.target_estimated, scale))
         return [str(w) for w in written if w]
 
     def load(self, directory):
@@ -689,9 +698,7 @@ class CalibrationEngine:
                         f'{cal.n_samples} samples)')
         target_file = os.path.join(directory, TARGET_FILE)
         board = self.settings.board
-        estimated = (board.estimate_mount if board is not None
-                     else self.settings.point_place_guess is not None)
-        if estimated and os.path.exists(target_file):
+        if self.target_estimated and os.path.exists(target_file):
             T = read_target_yaml(target_file)
             scale = (read_target_scale(target_file)
                      if board is not None and board.estimate_scale else 1.0)

@@ -306,11 +306,11 @@ def make_report(settings: Settings, engine, outcome, front: FrontEnd, timings):
                                            'no usable images'))
     target = None
     board = engine.settings.board
-    if board is not None or engine.settings.point_place_guess is not None:
+    if engine.target_estimated is not None:
         T = engine.T_link_target
         target = dict(
             T_link_target=None if T is None else pose_vector(T),
-            estimated=bool(board is None or board.estimate_mount),
+            estimated=engine.target_estimated,
             std=(None if engine.mount_std is None else [float(x) for x in engine.mount_std]))
         if board is not None and board.estimate_scale:
             target.update(scale=engine.target_scale,

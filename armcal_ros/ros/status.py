@@ -143,8 +143,10 @@ def camera_status(name, s: NodeState, node_name='armcal') -> Status:
         values[f'std_{k}'] = float(v)
     return Status(OK, f'{node_name}: {name}',
                   f'reprojection RMS {c.rms_px:.3f} px over {c.n_inliers} of '
-                  f'{c.n_observations} observations; expected 3-D error it adds over the '
-                  f'workspace {c.workspace_error_mm:.2f} mm', name,
+                  f'{c.n_observations} observations'
+                  + (f'; expected 3-D error it adds over the workspace '
+                     f'{c.workspace_error_mm:.2f} mm' if np.isfinite(c.workspace_error_mm)
+                     else ''), name,
                   {k: _fmt(v) for k, v in values.items()})
 
 
