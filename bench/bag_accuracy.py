@@ -23,9 +23,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _report import machine, table, write_json, write_section  # noqa: E402
 
 import numpy as np  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
 
 from armcal_ros.compare import compare  # noqa: E402
+from armcal_ros.core.evaluation import z_scores  # noqa: E402
 from armcal_ros.io.calib_files import read_cameras  # noqa: E402
 from armcal_ros.offline import collect_samples, solve_and_write  # noqa: E402
 from armcal_ros.settings import load_settings, with_noise_model  # noqa: E402
@@ -36,17 +36,10 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MODELS = ('fixed', 'independent', 'correlated', 'kinematic', 'hybrid', 'auto')
 
 
-def z_scores(cal, truth):
-    """Return the z-scores of fx, fy, cx, cy, k1, k2, centre and rotation of every camera."""
-    z = []
-    for name, c in cal.cameras.items():
-        t, e, s = truth[name], c.camera, c.std
-        z += [(getattr(e, k) - getattr(t, k)) / s[k] for k in ('fx', 'fy', 'cx', 'cy')]
-        z += [(e.dist[i] - t.dist[i]) / s[k] for i, k in enumerate(('k1', 'k2')) if s.get(k)]
-        w = Rotation.from_matrix(e.rotation @ t.rotation.T).as_rotvec()
-        for a, ax in enumerate('xyz'):
-            z += [(e.center[a] - t.center[a]) / s[f'center_{ax}'], w[a] / s[f'rot_{ax}']]
-    return np.array(z)
+def all_z(cal, truth):
+    """Return the z-scores of every camera's parameters (:func:`z_scores`), as one array."""
+    return np.array([v for name, c in cal.cameras.items()
+                     for v in z_scores(c.camera, c.std, truth[name]).values()])
 
 
 def run_bag(label, bag, params, out_dir):
@@ -68,7 +61,7 @@ def run_bag(label, bag, params, out_dir):
                           pixel_sigma=cal.hyperparameters.get('pixel_sigma'),
                           reason=cal.hyperparameters.get('auto_reason', ''))
         h = cal.hyperparameters
-        z = z_scores(cal, truth)
+        z = all_z(cal, truth)
         raw[model].update(rms_z=float(np.sqrt(np.mean(z ** 2))),
                           within2=float(np.mean(np.abs(z) < 2)), uncertainty=h.get('uncertainty'))
         rows.append([label, len(front.store), model + (f' ({chosen})' if chosen else ''),

@@ -41,13 +41,11 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import numpy as np  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
 
 from _report import machine, table, write_json, write_section  # noqa: E402
 from armcal_ros.core.adjustment import SolverSettings  # noqa: E402
 from armcal_ros.core.calibration import calibrate  # noqa: E402
-from armcal_ros.core.camera import DISTORTION_NAMES  # noqa: E402
-from armcal_ros.core.evaluation import triangulate  # noqa: E402
+from armcal_ros.core.evaluation import triangulate, z_scores  # noqa: E402
 from armcal_ros.core.priors import PriorSettings  # noqa: E402
 from armcal_ros.core.uncertainty import rms_error_mm, triangulation_covariance  # noqa: E402
 from armcal_ros.sim.cells import CELLS  # noqa: E402
@@ -67,26 +65,6 @@ def problem(scenario, n, seed):
         return make_robot_problem(cell.scenario, n, seed, pixel_sigma=PIXEL_SIGMA,
                                   settings=cell.sim_settings())
     return make_robot_problem(scenario, n, seed, pixel_sigma=PIXEL_SIGMA)
-
-
-def z_scores(est, std, truth):
-    """Return the z-scores of one camera: intrinsics, centre per axis, rotation per axis."""
-    z = {}
-    for k in ('fx', 'fy', 'cx', 'cy'):
-        if std.get(k, 0) > 0:
-            z[k] = (getattr(est, k) - getattr(truth, k)) / std[k]
-    for k in ('k1', 'k2'):
-        if std.get(k, 0) > 0:
-            i = DISTORTION_NAMES.index(k)
-            z[k] = (est.dist[i] - truth.dist[i]) / std[k]
-    for a, ax in enumerate('xyz'):
-        z['C' + ax] = (est.center[a] - truth.center[a]) / std['center_' + ax]
-    # The solver's increment w takes the truth's rotation to the estimate's: R_est =
-    # exp([w]x) R_true.
-    w = Rotation.from_matrix(est.rotation @ truth.rotation.T).as_rotvec()
-    for a, ax in enumerate('xyz'):
-        z['r' + ax] = w[a] / std['rot_' + ax]
-    return z
 
 
 def run_case(args):

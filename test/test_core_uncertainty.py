@@ -72,14 +72,10 @@ def test_triangulation_covariance_matches_monte_carlo():
 
 def _rms_z(adj, truth):
     """Return the z-scores of fx, fy, cx, cy, the centre and the rotation of every camera."""
-    z = []
-    for name, e in adj.cameras.items():
-        t, c = truth[name], e.camera
-        z += [(getattr(c, k) - getattr(t, k)) / e.std[k] for k in ('fx', 'fy', 'cx', 'cy')]
-        w = Rotation.from_matrix(c.rotation @ t.rotation.T).as_rotvec()
-        for a, ax in enumerate('xyz'):
-            z += [(c.center[a] - t.center[a]) / e.std[f'center_{ax}'], w[a] / e.std[f'rot_{ax}']]
-    return np.array(z)
+    from armcal_ros.core.evaluation import z_scores
+    skip = ('k1', 'k2')
+    return np.array([v for name, e in adj.cameras.items()
+                     for k, v in z_scores(e.camera, e.std, truth[name]).items() if k not in skip])
 
 
 @pytest.mark.slow

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Dict, Sequence
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from armcal_ros.core.camera import Camera, project_with_jacobians, undistort_normalized
 
@@ -185,3 +186,26 @@ def score_cameras(estimated: Dict[str, Camera], truth: Dict[str, Camera], test_p
         absolute = shape = float('nan')
     return Score(1000.0 * absolute, 1000.0 * shape, centre, focal,
                  float(np.sqrt(np.mean(rp ** 2))), per)
+
+
+def z_scores(estimated: Camera, std: Dict[str, float], truth: Camera) -> Dict[str, float]:
+    """
+    Return (estimate - truth) / reported std of one camera's parameters, by name.
+
+    fx, fy, cx, cy and k1, k2 (those with a std > 0: held values have none); the optical
+    centre per axis (``C<x|y|z>``, std ``center_<x|y|z>``); the rotation per axis (``r<x|y|z>``,
+    std ``rot_<x|y|z>``), as the solver's increment w with R_est = exp([w]x) R_true.  Honest
+    standard deviations give z of unit variance.
+    """
+    z = {}
+    for k in ('fx', 'fy', 'cx', 'cy'):
+        if std.get(k, 0) > 0:
+            z[k] = (getattr(estimated, k) - getattr(truth, k)) / std[k]
+    for i, k in enumerate(('k1', 'k2')):
+        if std.get(k, 0) > 0:
+            z[k] = (estimated.dist[i] - truth.dist[i]) / std[k]
+    w = Rotation.from_matrix(estimated.rotation @ truth.rotation.T).as_rotvec()
+    for a, ax in enumerate('xyz'):
+        z['C' + ax] = (estimated.center[a] - truth.center[a]) / std['center_' + ax]
+        z['r' + ax] = w[a] / std['rot_' + ax]
+    return {k: float(v) for k, v in z.items()}
