@@ -33,6 +33,7 @@ bench: $(STAMP)
 	$(PY) bench/cells.py
 	$(PY) bench/node.py
 	$(PY) bench/uncertainty.py
+	$(PY) bench/hyperparameters.py
 	$(PY) bench/real_data.py
 
 clean:

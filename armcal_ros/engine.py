@@ -160,6 +160,17 @@ class SolveOutcome:
     time_s: float
 
 
+@dataclass
+class ProblemInputs:
+    """The inputs of a point-marker solve (:meth:`CalibrationEngine.problem_inputs`)."""
+
+    specs: List[CameraSpec]
+    points: np.ndarray
+    obs: Observations
+    kinematics: Optional[KinematicData]
+    pooled_sigma_px: float
+
+
 class CalibrationEngine:
     """
     Accumulate samples and keep an up-to-date calibration.
@@ -356,6 +367,29 @@ class CalibrationEngine:
             w, h = self.image_sizes.get(name, (0, 0))
             specs.append(CameraSpec(name, w, h))
         return arrays, specs, missing
+
+    def problem_inputs(self) -> Optional[ProblemInputs]:
+        """
+        Return what a point-marker solve of the current samples starts from (None if nothing).
+
+        The cameras with a known image size, the measured points, the observations, the
+        arm's Jacobian (None without joint angles) and the pooled-detection image noise: what
+        the engine passes to :func:`~armcal_ros.core.calibration.calibrate`, for tools that
+        study the adjustment on these data (bench/hyperparameters.py).
+        """
+        with self._lock:
+            arrays, specs, missing = self._problem()
+            kin = self._kinematics(arrays)
+        keep = [j for j, s in enumerate(specs) if s.name not in missing]
+        if not keep or len(arrays.points) == 0:
+            return None
+        remap = -np.ones(len(specs), np.int64)
+        remap[keep] = np.arange(len(keep))
+        sel = remap[arrays.camera_index] >= 0
+        obs = Observations(remap[arrays.camera_index[sel]], arrays.point_index[sel],
+                           arrays.uv[sel])
+        return ProblemInputs([specs[j] for j in keep], arrays.points, obs, kin,
+                             pooled_pixel_sigma(arrays.spread_px[sel], arrays.n_frames[sel]))
 
     def solve(self, force=False) -> SolveOutcome:
         """

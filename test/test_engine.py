@@ -229,3 +229,19 @@ def test_a_single_model_publishes_its_noise_reference_and_workspace_error():
                for c in out.calibration.cameras.values())
     ref = eng._reference
     assert eng.solve().accepted and eng._reference is ref       # not searched again
+
+
+def test_problem_inputs_are_the_samples_as_the_solver_sees_them():
+    prob = make_problem(40, 3)
+    eng = _engine(prob, Clock())
+    assert eng.problem_inputs() is None
+    for smp in _samples(prob):
+        eng.add_sample(smp)
+    inputs = eng.problem_inputs()
+    assert [s.name for s in inputs.specs] == [c.name for c in prob.cameras]
+    order = np.lexsort((prob.obs.camera, prob.obs.point))
+    got = np.lexsort((inputs.obs.camera, inputs.obs.point))
+    np.testing.assert_allclose(inputs.points[inputs.obs.point[got]],
+                               prob.measured[prob.obs.point[order]])
+    np.testing.assert_allclose(inputs.obs.uv[got], prob.obs.uv[order])
+    assert inputs.kinematics is None
