@@ -38,10 +38,47 @@ def _add_simulate(p):
     p.add_argument('--encoding', default=None, choices=['mono8', 'rgb8', 'bgr8'],
                    help='image encoding (default: the cell\'s)')
     p.add_argument('--no-zstd', action='store_true', help='no zstd chunk compression (mcap)')
+    p.add_argument('--knock', action='append', default=[], metavar='CAM:TIME:DEG:MM',
+                   help='knock camera CAM TIME s into the session: it turns by DEG degrees '
+                        'about a random axis through its optical centre and the centre moves '
+                        'by MM mm (repeatable)')
+    p.add_argument('--refocus', action='append', default=[], metavar='CAM:TIME:PERCENT',
+                   help='change camera CAM\'s focal length (fx, fy) by PERCENT %% TIME s into '
+                        'the session (repeatable)')
     p.add_argument('--quiet', action='store_true')
 
 
+#: option -> (expected form, example, CameraChange fields after the camera and the time)
+_CHANGE_OPTIONS = {
+    '--knock': ('CAM:TIME:DEG:MM', 'cam1:30:0.5:2', ('rotation_deg', 'translation_mm')),
+    '--refocus': ('CAM:TIME:PERCENT', 'cam1:30:1.5', ('focal_percent',)),
+}
+
+
+def _camera_change(option, text, camera_names, duration):
+    """Return the CameraChange of one ``--knock`` or ``--refocus`` value."""
+    from armcal_ros.sim.cell import CameraChange
+    form, example, names = _CHANGE_OPTIONS[option]
+    parts = text.rsplit(':', len(names) + 1)
+    try:
+        if len(parts) != len(names) + 2:
+            raise ValueError(f'{len(parts)} fields')
+        values = [float(v) for v in parts[1:]]
+        change = CameraChange(parts[0], values[0], **dict(zip(names, values[1:])))
+    except ValueError as err:
+        raise ValueError(f'{option} expects {form} (e.g. {example}), got {text!r}: {err}') \
+            from None
+    if change.camera not in camera_names:
+        raise ValueError(f'{option} {text!r}: unknown camera {change.camera!r}; the cell\'s '
+                         f'cameras are {list(camera_names)}')
+    if change.time_s >= duration:
+        raise ValueError(f'{option} {text!r}: TIME must be before the end of the session '
+                         f'(--duration {duration:g})')
+    return change
+
+
 def _run_simulate(args):
+    import dataclasses
     import os
 
     import yaml
@@ -59,6 +96,11 @@ def _run_simulate(args):
         (None if args.compressed == 'none' else args.compressed)
     encoding = args.encoding or cell.encoding
     settings = cell.sim_settings(error_model=args.error_model)
+    changes = tuple(_camera_change(option, text, settings.camera_names, args.duration)
+                    for option, texts in (('--knock', args.knock), ('--refocus', args.refocus))
+                    for text in texts)
+    if changes:
+        settings = dataclasses.replace(settings, camera_changes=changes)
     result = simulate_cell(scenario, args.seed, args.duration, settings)
 
     def progress(i, n):
@@ -81,6 +123,8 @@ def _run_simulate(args):
         print(f'wrote {args.output}: cell {args.cell}, scenario {scenario}, seed {args.seed}, '
               f'{len(result.dwells)} dwells, '
               + ', '.join(f'{t} {n}' for t, n in counts.items())
+              + (f'; {len(changes)} camera changes (ground_truth/changes.yaml)'
+                 if changes else '')
               + f'; {size / 1e6:.1f} MB; calibrator parameters in {params}')
     return 0
 

@@ -41,9 +41,13 @@ from typing import Callable, Dict, List, Optional, Tuple
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from armcal_ros.change_tracking import ChangeTracker, CHANGES_FILE
 from armcal_ros.core.adjustment import Observations, SolverSettings
 from armcal_ros.core.board_calibration import BoardData, calibrate_board, MountSettings
 from armcal_ros.core.calibration import calibrate, CalibrationResult, CameraSpec
+from armcal_ros.core.change import ChangeSettings
+from armcal_ros.core.initialisation import initialise_with_intrinsics
+from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
 from armcal_ros.core.image_noise import pooled_pixel_sigma
 from armcal_ros.core.kinematic_prior import KinematicData, tip_place
 from armcal_ros.core.priors import KINEMATIC_MODELS, PriorSettings
@@ -79,6 +83,15 @@ class EngineSettings:
     #: A point marker placed by a kinematic model: the guess (m, on ``marker_link``) the
     #: samples' points were computed at; the tip errors' translation is the place's correction.
     point_place_guess: Optional[Tuple[float, float, float]] = None
+    #: Change detection (:mod:`armcal_ros.core.change`; point targets): on, the test's run
+    #: and false-alarm probability, and the new observations a changed camera needs before it
+    #: is solved again.
+    detect_changes: bool = True
+    change: ChangeSettings = field(default_factory=ChangeSettings)
+    recalibration_samples: int = 20
+    #: Forgetting for slow drift: observations older than this (s, before the newest sample)
+    #: are retired before each solve; 0 keeps everything.
+    max_sample_age_s: float = 0.0
 
     def validate(self):
         """Raise ValueError naming the first bad setting; return self."""
@@ -94,6 +107,13 @@ class EngineSettings:
             raise ValueError(f'min_new_samples must be >= 0, got {self.min_new_samples}')
         self.prior.validate()
         self.solver.validate()
+        self.change.validate()
+        if int(self.recalibration_samples) != self.recalibration_samples or \
+                self.recalibration_samples < 6:
+            raise ValueError('recalibration_samples must be an integer >= 6 (a camera has 6 '
+                             f'pose parameters), got {self.recalibration_samples!r}')
+        if not (np.isfinite(self.max_sample_age_s) and self.max_sample_age_s >= 0):
+            raise ValueError(f'max_sample_age must be >= 0 s, got {self.max_sample_age_s}')
         if self.board is not None:
             if not isinstance(self.board, BoardTarget):
                 raise ValueError(f'board must be a BoardTarget, got {type(self.board).__name__}')
@@ -214,6 +234,11 @@ class CalibrationEngine:
         self.mount_std: Optional[np.ndarray] = None
         #: The factor of the target's points (a tag of estimated size: size over the guess).
         self.target_scale = 1.0
+        #: Declared changes, epochs and cameras being recalibrated (point targets only: a
+        #: board's corners are tested by its own solver's residuals).
+        self.changes = ChangeTracker(self.settings.change, self.settings.recalibration_samples,
+                                     enabled=self.settings.detect_changes and board is None)
+        self._change_listeners: List[Callable] = []
 
     @property
     def target_estimated(self) -> Optional[bool]:
@@ -237,9 +262,40 @@ class CalibrationEngine:
             self.image_sizes[camera] = (int(width), int(height))
 
     def add_sample(self, sample):
-        """Add a sample to the store; return the store's AddResult."""
+        """
+        Add a sample to the store and test it against the current calibration.
+
+        Returns the store's AddResult.  A declared change starts a new epoch at once (the
+        changed camera's older observations are retired) and is passed to the
+        :meth:`on_change` callbacks.
+        """
         with self._lock:
-            return self.store.add(sample)
+            result = self.store.add(sample)
+            event = self.changes.observe(sample)
+            record = (self.changes.declare(event, self.store, self._current)
+                      if event is not None else None)
+        if record is not None:
+            for cb in list(self._change_listeners):
+                cb(record)
+        return result
+
+    def on_change(self, callback):
+        """Register ``callback(ChangeRecord)``, called when a change is declared."""
+        self._change_listeners.append(callback)
+
+    def withheld(self):
+        """Return the cameras whose calibration no longer holds (changed, not yet re-solved)."""
+        with self._lock:
+            return self.changes.withheld()
+
+    @property
+    def published(self) -> Optional[Calibration]:
+        """Return the current calibration without the withheld cameras (None if none)."""
+        with self._lock:
+            cal, gone = self._current, set(self.changes.withheld())
+        if cal is None or not gone:
+            return cal
+        return replace(cal, cameras={k: v for k, v in cal.cameras.items() if k not in gone})
 
     def reset(self):
         """Forget every sample (the current calibration is kept until a new one replaces it)."""
@@ -275,6 +331,8 @@ class CalibrationEngine:
                 return False, 'solve_period not elapsed'
             if self.store.revision == self._revision_at_last_solve:
                 return False, 'no new samples'
+            if self._recalibration_ready():
+                return True, 'a changed camera has enough new observations'
             new = abs(n - self._samples_at_last_solve)
             if self._current is not None and new < self.settings.min_new_samples and \
                     self.store.revision - self._revision_at_last_solve < \
@@ -282,6 +340,14 @@ class CalibrationEngine:
                 return False, (f'{new} new samples '
                                f'(min_new_samples {self.settings.min_new_samples})')
             return True, 'due'
+
+    def _recalibration_ready(self):
+        """Return True if a changed camera reached its new observations since the last solve."""
+        waiting = self.changes.waiting()
+        if not waiting:
+            return False
+        self.changes.count_new(self.store.arrays(camera_names=list(self.settings.camera_names)))
+        return any(self.changes.ready(n) for n in waiting)
 
     def _kinematics(self, arrays, place=None):
         """
@@ -411,6 +477,7 @@ class CalibrationEngine:
         t0 = time.perf_counter()
         with self._lock:
             self._last_solve_start = self.clock()
+            self._forget_old_samples()
             self._revision_at_last_solve = self.store.revision
             arrays, specs, missing = self._problem()
             n = len(arrays.points)
@@ -419,7 +486,13 @@ class CalibrationEngine:
                        if self._current is not None else None)
             prior, searching = self._prior_for_solve(n)
             kin = self._kinematics(arrays)
-        keep = [j for j, s in enumerate(specs) if s.name not in missing]
+            self.changes.count_new(arrays)
+            waiting = set(self.changes.waiting())
+            restarted = {k: v for k, v in self.changes.recalibrating.items()
+                         if k not in waiting}
+        keep = [j for j, s in enumerate(specs) if s.name not in missing and s.name not in waiting]
+        if initial is not None:
+            initial = self._restart_changed(initial, restarted, arrays)
         if prior.model in KINEMATIC_MODELS and kin is None:
             return self._finish(SolveOutcome(
                 False, f'noise_model {prior.model} needs joint angles for every sample (this '
@@ -459,6 +532,8 @@ class CalibrationEngine:
         if searching:
             self._remember_auto_choice(result, n)
         outcome = self._judge(result, n, time.perf_counter() - t0)
+        if outcome.accepted:
+            self._follow_changes(outcome, arrays, points)
         if outcome.accepted and place is not None:
             place = tip_place(result.adjustment, place)
             if place is not None:
@@ -469,6 +544,51 @@ class CalibrationEngine:
                 outcome.calibration.hyperparameters['T_link_target'] = pose_vector(T)
                 outcome.calibration.hyperparameters['place_stage'] = note
         return self._finish(outcome)
+
+    def _forget_old_samples(self):
+        """Retire observations older than ``max_sample_age_s`` before the newest (lock held)."""
+        age = self.settings.max_sample_age_s
+        if age <= 0 or not len(self.store):
+            return
+        newest = max(o.stamp_ns for smp in self.store.samples
+                     for o in smp.observations.values())
+        self.store.retire(newest - int(age * 1e9), epoch=-1)
+
+    def _restart_changed(self, initial, restarted, arrays):
+        """
+        Start each changed camera from a PnP of its new observations with its old intrinsics.
+
+        A knocked camera keeps its lens: the pose alone explains its new views, and a PnP
+        from the old intrinsics is a far better start than the old pose or a DLT.  If the PnP
+        fails (the lens changed too much to explain them), the camera starts from a DLT.
+        """
+        initial = dict(initial)
+        for name, (rec, old) in restarted.items():
+            initial.pop(name, None)
+            if old is None or name not in arrays.camera_names:
+                continue
+            sel = arrays.camera_index == arrays.camera_names.index(name)
+            cam = old.camera
+            got = initialise_with_intrinsics(
+                name, cam.width, cam.height, arrays.points[arrays.point_index[sel]],
+                arrays.uv[sel], IntrinsicsPrior(cam.intrinsics(), cam.dist))
+            if got.success:
+                initial[name] = got.camera
+        return initial
+
+    def _follow_changes(self, outcome, arrays, points):
+        """After an accepted solve: close recalibrations, rebuild the change monitor."""
+        cal = outcome.calibration
+        adj = outcome.result.adjustment
+        arm = 0.0
+        if adj is not None and adj.points is not None and len(adj.points) == len(points):
+            arm = float(np.sqrt(np.mean(np.sum((adj.points - points) ** 2, axis=1)) / 3.0))
+        cal.hyperparameters['arm_sigma_mm'] = 1e3 * arm
+        with self._lock:
+            self.changes.accepted(cal)
+        monitor = self.changes.build_monitor(cal, arrays, arm)
+        with self._lock:
+            self.changes.monitor = monitor
 
     def _reference_for(self, specs, points, obs, initial, kin, solver, n, arrays, sel):
         """
@@ -620,8 +740,11 @@ class CalibrationEngine:
             old = self._current
         if old is not None:
             s = self.settings
+            with self._lock:
+                changed = set(self.changes.recalibrating)
             for name, c in new.cameras.items():
-                if name not in old.cameras:
+                if name not in old.cameras or name in changed:
+                    # A changed camera's old fit is another epoch's: no yardstick.
                     continue
                 o = old.cameras[name]
                 worse = _residuals_worse(o, c, s.reject_rms_ratio, s.reject_rms_margin_px)
@@ -635,7 +758,7 @@ class CalibrationEngine:
                                         f'{o.n_inliers}/{o.n_observations} to '
                                         f'{c.n_inliers}/{c.n_observations} (rates {fo:.2f}, '
                                         f'{fn:.2f})', result, new, n, elapsed)
-            dropped = [k for k in old.cameras if k not in new.cameras]
+            dropped = [k for k in old.cameras if k not in new.cameras and k not in changed]
             if dropped:
                 for k in dropped:
                     new.cameras[k] = old.cameras[k]
@@ -676,14 +799,16 @@ class CalibrationEngine:
         """
         Write samples and the current calibration to ``directory``.
 
-        Files: samples (the store's format), ``<camera>.yaml`` and ``extrinsics.yaml`` for the
-        calibrated cameras, and ``calibration.json`` with the quality figures.  Each file is
+        Files: samples (the store's format, retired observations included), ``<camera>.yaml``
+        and ``extrinsics.yaml`` for the calibrated cameras (not those withheld after a change),
+        ``calibration.json`` with the quality figures and ``changes.json`` with the declared
+        changes.  Each file is
         written atomically.  Returns the list of files written.
         """
         os.makedirs(directory, exist_ok=True)
         with self._lock:
-            written = [self.store.save(directory)]
-            cal = self._current
+            written = [self.store.save(directory), self.changes.save(directory)]
+        cal = self.published
         if cal is not None:
             written += write_calibration(directory, cal, self.settings.base_frame)
         with self._lock:
@@ -730,6 +855,11 @@ class CalibrationEngine:
                     self._samples_at_last_solve = len(self.store)
             said.append(f'calibration of {sorted(cal.cameras)} ({cal.model}, '
                         f'{cal.n_samples} samples)')
+        if os.path.exists(os.path.join(directory, CHANGES_FILE)):
+            with self._lock:
+                n = self.changes.load(directory, self._current)
+            if n:
+                said.append(f'{n} declared change(s)')
         target_file = os.path.join(directory, TARGET_FILE)
         board = self.settings.board
         if self.target_estimated and os.path.exists(target_file):

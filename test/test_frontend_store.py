@@ -231,3 +231,27 @@ def test_version_1_store_files_still_load(tmp_path):
     back = SampleStore.load(tmp_path)
     assert len(back) == 3 and all(s.reference_points is None for s in back)
     np.testing.assert_allclose(sorted(s.point_nominal[0] for s in back), [0, 0.1, 0.2])
+
+
+def test_retired_observations_leave_the_solver_view_and_survive_a_restart(tmp_path):
+    store = SampleStore(min_sample_spacing=0.01)
+    for k in range(6):
+        store.add(Sample(point_nominal=[0.05 * k, 0, 0], q=np.full(3, 0.1 * k),
+                         observations={'cam1': obs(stamp=100 * k), 'cam2': obs(stamp=100 * k)},
+                         stamp_ns=100 * k))
+    store.add(Sample(point_nominal=[0, 0.5, 0], observations={'cam2': obs(stamp=50)},
+                     stamp_ns=50))
+    assert store.retire(300, epoch=1, camera='cam2') == 4       # stamps 0, 50, 100, 200
+    arrays = store.arrays(['cam1', 'cam2'])
+    assert len(store) == 6                   # the cam2-only sample went with its observation
+    assert sum(arrays.camera_index == 1) == 3 and sum(arrays.camera_index == 0) == 6
+    assert [e for e, _ in store.retired] == [1] * 4
+    store.save(str(tmp_path))
+    back = SampleStore.load(str(tmp_path))
+    assert len(back) == 6 and len(back.retired) == 4
+    assert sorted(s.stamp_ns for _, s in back.retired) == [0, 50, 100, 200]
+    assert all(list(s.observations) == ['cam2'] for _, s in back.retired)
+    assert back.retired[0][1].q is not None
+    # every camera (an arm change): cam1's three oldest go too
+    assert back.retire(300, epoch=2) == 3
+    assert len(back) == 3

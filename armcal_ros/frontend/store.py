@@ -16,25 +16,31 @@ Policy (memory and solve time are bounded by the workspace, not by the session's
   the smallest spacing) rather than keeping the most recent ones, which would all come from
   wherever the operator happens to be working.
 
+A camera that moved (or a changed arm) starts a new *epoch*: :meth:`SampleStore.retire` moves its
+observations from before the change out of the samples into ``retired``, tagged with the epoch,
+where they are kept (and saved) but never used; a sample left with no observation goes with them.
+
 "Distance" between two samples is that of their nominal points; for an extended target (a
 board) it is the largest distance between corresponding reference points
 (:meth:`~armcal_ros.frontend.samples.Sample.key_points`), so two views of a board from the same
 place but turned are different samples.  One store holds one kind of target.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import enum
 import json
 import os
 import tempfile
+from typing import List, Optional, Tuple
 
 import numpy as np
 
 from .samples import Observation, Sample
 
-FORMAT_VERSION = 2
-#: Versions :meth:`SampleStore.load` reads (1: point targets only, no reference points).
-READABLE_VERSIONS = (1, 2)
+FORMAT_VERSION = 3
+#: Versions :meth:`SampleStore.load` reads (1: point targets only, no reference points; 2: no
+#: retired observations).
+READABLE_VERSIONS = (1, 2, 3)
 FILE_NAME = 'samples.npz'
 # Two dwells whose nominal points are closer than this are the same place (robot repeatability
 # is ~0.1 mm; encoder noise is far smaller).
@@ -104,6 +110,8 @@ class SampleStore:
         self.revision = 0          # incremented on every change
         self.counts = {r: 0 for r in AddResult}
         self.evicted = 0
+        #: (epoch, sample) of observations retired by a change (:meth:`retire`).
+        self.retired: List[Tuple[int, Sample]] = []
 
     def __len__(self):
         return len(self._samples)
@@ -242,6 +250,30 @@ class SampleStore:
                 return True
         return False
 
+    def retire(self, before_ns, epoch, camera: Optional[str] = None):
+        """
+        Retire the observations of ``camera`` (every camera if None) stamped before ``before_ns``.
+
+        They move to :attr:`retired` tagged with ``epoch``; a sample left without observations
+        is removed.  Returns the number of observations retired.
+        """
+        moved = 0
+        for smp in list(self._samples):
+            old = {name: o for name, o in smp.observations.items()
+                   if (camera is None or name == camera) and o.stamp_ns < before_ns}
+            if not old:
+                continue
+            self.retired.append((int(epoch), replace(smp, observations=old, q=smp.q,
+                                                     pose=smp.pose)))
+            for name in old:
+                del smp.observations[name]
+            moved += len(old)
+            if not smp.observations:
+                self.remove(smp.id)
+        if moved:
+            self.revision += 1
+        return moved
+
     # -- solver view ----------------------------------------------------------------------
 
     def arrays(self, camera_names=None):
@@ -307,54 +339,19 @@ class SampleStore:
         return path
 
     def _to_arrays(self):
-        samples = sorted(self._samples, key=lambda s: s.id)
-        names = self.camera_names
-        cam_index = {name: i for i, name in enumerate(names)}
-        nq = {len(s.q) for s in samples if s.q is not None}
-        if len(nq) > 1:
-            raise ValueError(f'samples have joint vectors of different lengths {sorted(nq)}')
-        nq = nq.pop() if nq else 0
-        n = len(samples)
-        nr = {len(s.reference_points) for s in samples if s.reference_points is not None}
-        nr = nr.pop() if nr else 0           # one store holds one kind of target (see add)
-        ref = np.full((n, nr, 3), np.nan)
-        q = np.full((n, nq), np.nan)
-        pose = np.full((n, 4, 4), np.nan)
-        obs_rows, uv, ids = [], [], []
-        offset = 0
-        for i, s in enumerate(samples):
-            if s.q is not None:
-                q[i] = s.q
-            if s.pose is not None:
-                pose[i] = s.pose
-            if s.reference_points is not None:
-                ref[i] = s.reference_points
-            for name, o in s.observations.items():
-                obs_rows.append((i, cam_index[name], o.n_frames, o.stamp_ns, offset))
-                uv.append(o.uv)
-                ids.append(o.ids)
-                offset += o.uv.shape[0]
-        obs = np.array(obs_rows, dtype=np.int64).reshape(-1, 5)
-        spread = np.array([o.spread_px for s in samples for o in s.observations.values()])
-        meta = dict(version=FORMAT_VERSION, camera_names=list(names),
+        names = list(self.camera_names)
+        for _, smp in self.retired:
+            names += [n for n in smp.observations if n not in names]
+        meta = dict(version=FORMAT_VERSION, camera_names=names,
                     joint_names=None if self.joint_names is None else list(self.joint_names),
                     max_samples=self.max_samples, min_sample_spacing=self.min_sample_spacing,
                     same_point_tolerance=self.same_point_tolerance, next_id=self._next_id)
-        return dict(
-            meta=np.array(json.dumps(meta)),
-            sample_id=np.array([s.id for s in samples], dtype=np.int64),
-            stamp_ns=np.array([s.stamp_ns for s in samples], dtype=np.int64),
-            point=np.array([s.point_nominal for s in samples]).reshape(n, 3),
-            has_q=np.array([s.q is not None for s in samples], dtype=bool),
-            q=q,
-            has_pose=np.array([s.pose is not None for s in samples], dtype=bool),
-            pose=pose,
-            has_reference=np.array([s.reference_points is not None for s in samples],
-                                   dtype=bool),
-            reference_points=ref,
-            obs=obs, obs_spread=spread.reshape(-1),
-            uv=np.concatenate(uv) if uv else np.zeros((0, 2)),
-            ids=np.concatenate(ids) if ids else np.zeros(0, np.int64))
+        out = dict(meta=np.array(json.dumps(meta)))
+        out.update(_arrays_of(sorted(self._samples, key=lambda s: s.id), names))
+        retired = _arrays_of([smp for _, smp in self.retired], names)
+        out.update({'retired_' + k: v for k, v in retired.items()})
+        out['retired_epoch'] = np.array([e for e, _ in self.retired], dtype=np.int64)
+        return out
 
     @classmethod
     def load(cls, directory, joint_names=None, **overrides):
@@ -391,29 +388,84 @@ class SampleStore:
         store = cls(joint_names=joint_names if joint_names is not None else saved_joints,
                     **params)
         names = meta['camera_names']
-        obs = arrays['obs']
-        n_points = arrays['uv'].shape[0]
-        per_sample = {}
-        ends = np.append(obs[1:, 4], n_points)
-        for row, end, spread in zip(obs, ends, arrays['obs_spread']):
-            i, c, n_frames, stamp, off = (int(v) for v in row)
-            end = int(end)
-            per_sample.setdefault(i, {})[names[c]] = Observation(
-                uv=arrays['uv'][off:end], ids=arrays['ids'][off:end], n_frames=n_frames,
-                spread_px=float(spread), stamp_ns=stamp)
-        n = arrays['sample_id'].shape[0]
-        has_ref = arrays.get('has_reference', np.zeros(n, bool))
-        for i in range(n):
-            sample = Sample(point_nominal=arrays['point'][i],
-                            observations=per_sample.get(i, {}),
-                            stamp_ns=int(arrays['stamp_ns'][i]),
-                            q=arrays['q'][i].copy() if arrays['has_q'][i] else None,
-                            pose=arrays['pose'][i].copy() if arrays['has_pose'][i] else None,
-                            id=int(arrays['sample_id'][i]),
-                            reference_points=(arrays['reference_points'][i].copy()
-                                              if has_ref[i] else None))
-            if sample.observations:
-                store.add(sample)
+        for sample in _samples_of(arrays, names):
+            store.add(sample)
+        if 'retired_epoch' in arrays:
+            retired = _samples_of({k[len('retired_'):]: v for k, v in arrays.items()
+                                   if k.startswith('retired_')}, names)
+            store.retired = list(zip((int(e) for e in arrays['retired_epoch']), retired))
         store._next_id = max(store._next_id, int(meta.get('next_id', 0)))
         store.counts = {r: 0 for r in AddResult}
         return store
+
+
+def _arrays_of(samples, names):
+    """Flat arrays of ``samples`` (in the given order); observations index into ``names``."""
+    cam_index = {name: i for i, name in enumerate(names)}
+    nq = {len(s.q) for s in samples if s.q is not None}
+    if len(nq) > 1:
+        raise ValueError(f'samples have joint vectors of different lengths {sorted(nq)}')
+    nq = nq.pop() if nq else 0
+    n = len(samples)
+    nr = {len(s.reference_points) for s in samples if s.reference_points is not None}
+    nr = nr.pop() if nr else 0           # one store holds one kind of target (see add)
+    ref = np.full((n, nr, 3), np.nan)
+    q = np.full((n, nq), np.nan)
+    pose = np.full((n, 4, 4), np.nan)
+    obs_rows, uv, ids = [], [], []
+    offset = 0
+    for i, s in enumerate(samples):
+        if s.q is not None:
+            q[i] = s.q
+        if s.pose is not None:
+            pose[i] = s.pose
+        if s.reference_points is not None:
+            ref[i] = s.reference_points
+        for name, o in s.observations.items():
+            obs_rows.append((i, cam_index[name], o.n_frames, o.stamp_ns, offset))
+            uv.append(o.uv)
+            ids.append(o.ids)
+            offset += o.uv.shape[0]
+    obs = np.array(obs_rows, dtype=np.int64).reshape(-1, 5)
+    spread = np.array([o.spread_px for s in samples for o in s.observations.values()])
+    return dict(
+        sample_id=np.array([s.id for s in samples], dtype=np.int64),
+        stamp_ns=np.array([s.stamp_ns for s in samples], dtype=np.int64),
+        point=np.array([s.point_nominal for s in samples]).reshape(n, 3),
+        has_q=np.array([s.q is not None for s in samples], dtype=bool),
+        q=q,
+        has_pose=np.array([s.pose is not None for s in samples], dtype=bool),
+        pose=pose,
+        has_reference=np.array([s.reference_points is not None for s in samples], dtype=bool),
+        reference_points=ref,
+        obs=obs, obs_spread=spread.reshape(-1),
+        uv=np.concatenate(uv) if uv else np.zeros((0, 2)),
+        ids=np.concatenate(ids) if ids else np.zeros(0, np.int64))
+
+
+def _samples_of(arrays, names):
+    """Return the samples of :func:`_arrays_of`'s ``arrays`` (those with observations)."""
+    obs = arrays['obs']
+    n_points = arrays['uv'].shape[0]
+    per_sample = {}
+    ends = np.append(obs[1:, 4], n_points)
+    for row, end, spread in zip(obs, ends, arrays['obs_spread']):
+        i, c, n_frames, stamp, off = (int(v) for v in row)
+        end = int(end)
+        per_sample.setdefault(i, {})[names[c]] = Observation(
+            uv=arrays['uv'][off:end], ids=arrays['ids'][off:end], n_frames=n_frames,
+            spread_px=float(spread), stamp_ns=stamp)
+    n = arrays['sample_id'].shape[0]
+    has_ref = arrays.get('has_reference', np.zeros(n, bool))
+    out = []
+    for i in range(n):
+        if i not in per_sample:
+            continue
+        out.append(Sample(point_nominal=arrays['point'][i], observations=per_sample[i],
+                          stamp_ns=int(arrays['stamp_ns'][i]),
+                          q=arrays['q'][i].copy() if arrays['has_q'][i] else None,
+                          pose=arrays['pose'][i].copy() if arrays['has_pose'][i] else None,
+                          id=int(arrays['sample_id'][i]),
+                          reference_points=(arrays['reference_points'][i].copy()
+                                            if has_ref[i] else None)))
+    return out

@@ -30,14 +30,25 @@ lasting 0.3-1.5 s.  Targets are chosen so that the marker is inside every image 
 margin) and unoccluded by the links in every camera, except for a fraction
 ``partial_view_probability`` of them where two cameras suffice.  During moves the marker
 may leave an image or pass behind the arm.
+
+Camera changes (:class:`CameraChange`, ``SimSettings.camera_changes``): at a given time a camera
+can be knocked (its body turns about its optical centre and the centre moves) or refocused (fx
+and fy scale).  Frames from then on are projected and rendered with the changed camera, and the
+static scene behind it moves with it; :attr:`SimResult.camera_epochs` holds each camera's
+states.  The random axes and directions come from their own random stream, so a run's other
+draws are the same with and without changes.
 """
 
+import bisect
+import math
 import os
 import sys
 from dataclasses import asdict, dataclass, field
 from typing import List, Optional
 
+import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from armcal_ros.robot.kinematics import KinematicChain
 from armcal_ros.sim.bias_field import FourierBiasField
@@ -75,6 +86,64 @@ def bundled_urdf(filename):
 def default_urdf_path():
     """Path of the bundled PUMA 560 URDF, the simulator's default arm."""
     return bundled_urdf('puma560.urdf')
+
+
+@dataclass(frozen=True)
+class CameraChange:
+    """
+    A change of one camera ``time_s`` seconds after the session start.
+
+    A knock turns the camera body by ``rotation_deg`` about a random axis through its optical
+    centre and moves the centre by ``translation_mm`` in a random direction; a focus change
+    multiplies fx and fy by (1 + ``focal_percent`` / 100), leaving the principal point and
+    the distortion as they were.  One change may do both.
+    """
+
+    camera: str
+    time_s: float
+    rotation_deg: float = 0.0
+    translation_mm: float = 0.0
+    focal_percent: float = 0.0
+
+    def __post_init__(self):
+        if not isinstance(self.camera, str) or not self.camera:
+            raise ValueError(f'camera must be a camera name, got {self.camera!r}')
+        for name in ('time_s', 'rotation_deg', 'translation_mm', 'focal_percent'):
+            value = getattr(self, name)
+            try:
+                value = float(value)
+            except (TypeError, ValueError):
+                raise ValueError(f'{name} must be a number, got {value!r}') from None
+            if not math.isfinite(value):
+                raise ValueError(f'{name} must be finite, got {value}')
+            object.__setattr__(self, name, value)
+        if self.time_s <= 0:
+            raise ValueError(f'time_s must be > 0, got {self.time_s}')
+        if self.rotation_deg < 0:
+            raise ValueError(f'rotation_deg must be >= 0, got {self.rotation_deg}')
+        if self.translation_mm < 0:
+            raise ValueError(f'translation_mm must be >= 0, got {self.translation_mm}')
+        if self.focal_percent <= -100:
+            raise ValueError(f'focal_percent must be > -100, got {self.focal_percent}')
+
+    def apply(self, camera, axis, direction):
+        """
+        Return a changed copy of ``camera``; ``axis`` and ``direction`` are unit 3-vectors.
+
+        Both are in the base frame.  The camera-to-base rotation R^T becomes R_a R^T with R_a
+        the turn of ``rotation_deg`` about ``axis`` (right hand), so the world-to-camera
+        rotation becomes R R_a^T; the centre C becomes C + ``translation_mm`` * ``direction``
+        and t = -R C.
+        """
+        cam = camera.copy()
+        if self.rotation_deg or self.translation_mm:
+            turn = Rotation.from_rotvec(np.radians(self.rotation_deg) * np.asarray(axis, float))
+            centre = camera.center + 1e-3 * self.translation_mm * np.asarray(direction, float)
+            cam.rotation = camera.rotation @ turn.as_matrix().T
+            cam.translation = -cam.rotation @ centre
+        scale = 1.0 + self.focal_percent / 100.0
+        cam.fx, cam.fy = camera.fx * scale, camera.fy * scale
+        return cam
 
 
 @dataclass
@@ -128,10 +197,22 @@ class SimSettings:
     periodic_deg: tuple = (0.01, 0.025)
     compliance_deg: float = 0.02
     sensor: SensorModel = field(default_factory=SensorModel)
+    camera_changes: tuple = ()              # CameraChange (or its dictionaries)
 
     def __post_init__(self):
         if isinstance(self.sensor, dict):
             self.sensor = SensorModel(**self.sensor)
+        if not isinstance(self.camera_changes, (tuple, list)):
+            raise ValueError('camera_changes must be a sequence of CameraChange, got '
+                             f'{self.camera_changes!r}')
+        changes = []
+        for c in self.camera_changes:
+            if isinstance(c, dict):
+                c = CameraChange(**c)
+            if not isinstance(c, CameraChange):
+                raise ValueError(f'camera_changes must hold CameraChange or dicts, got {c!r}')
+            changes.append(c)
+        self.camera_changes = tuple(changes)
         if self.duration <= 2.0:
             raise ValueError(f'duration must be > 2 s, got {self.duration}')
         if self.camera_rate <= 0 or self.joint_rate <= 0:
@@ -143,7 +224,7 @@ class SimSettings:
             raise ValueError('camera_names must name at least one camera')
 
     def to_dict(self):
-        """Plain dictionary (YAML-safe)."""
+        """Plain dictionary (YAML-safe); ``camera_changes`` only when there are some."""
         def plain(v):
             if isinstance(v, (tuple, list)):
                 return [plain(x) for x in v]
@@ -152,7 +233,10 @@ class SimSettings:
             if isinstance(v, (np.floating, np.integer)):
                 return v.item()
             return v
-        return plain(asdict(self))
+        out = plain(asdict(self))
+        if not out['camera_changes']:
+            del out['camera_changes']
+        return out
 
 
 @dataclass
@@ -208,7 +292,14 @@ class FrameTruth:
 
 @dataclass
 class SimResult:
-    """Everything :func:`simulate_cell` produced (see the module docstring)."""
+    """
+    Everything :func:`simulate_cell` produced (see the module docstring).
+
+    ``cameras`` are the cameras at the session start.  ``camera_epochs`` maps a camera index to
+    its states [(start ns, Camera)], sorted, the first starting at ``start_ns``; each later
+    one is the previous one changed (:class:`CameraChange`).  ``change_log`` lists the changes
+    as applied, in time order (:func:`camera_epochs`).
+    """
 
     scenario: str
     seed: int
@@ -223,8 +314,34 @@ class SimResult:
     frames: FrameTruth
     dwells: DwellTruth
     start_ns: int = START_TIME_NS
+    camera_epochs: dict = field(default_factory=dict)
+    change_log: list = field(default_factory=list)
     #: Each camera's static scene behind the marker, drawn on first use (:meth:`render`).
     _clutter_cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self):
+        if not self.camera_epochs:
+            self.camera_epochs = {j: [(int(self.start_ns), c)] for j, c in enumerate(self.cameras)}
+
+    def epoch_index(self, j, t_ns):
+        """Return the index of camera ``j``'s epoch at bag time ``t_ns`` (0 before the first)."""
+        starts = [start for start, _ in self.camera_epochs[j]]
+        return max(0, bisect.bisect_right(starts, int(t_ns)) - 1)
+
+    def camera_at(self, j, t_ns):
+        """Return camera ``j`` as it is at bag time ``t_ns``."""
+        return self.camera_epochs[j][self.epoch_index(j, t_ns)][1]
+
+    @property
+    def final_cameras(self):
+        """Return the cameras at the end of the session."""
+        return [self.camera_epochs[j][-1][1] for j in range(len(self.cameras))]
+
+    @property
+    def camera_set_epochs(self):
+        """Return the distinct states of the whole camera set: [(start ns, [Camera])]."""
+        starts = sorted({start for ep in self.camera_epochs.values() for start, _ in ep})
+        return [(t, [self.camera_at(j, t) for j in range(len(self.cameras))]) for t in starts]
 
     @property
     def chain(self):
@@ -240,7 +357,9 @@ class SimResult:
         """
         sensor = sensor or self.settings.sensor
         f = self.frames
-        cam = self.cameras[int(f.camera[i])]
+        j = int(f.camera[i])
+        epoch = self.epoch_index(j, f.exposure_ns[i])
+        cam = self.camera_epochs[j][epoch][1]
         rng = np.random.default_rng([self.seed, 1009, int(i)])
         patches = []
         if clean or f.occlusion[i] in (OCCLUSION_NONE, OUTSIDE_IMAGE):
@@ -249,7 +368,7 @@ class SimResult:
                 centres = centres[:1]
             depth = cam.to_camera(centres[:1])[0, 2]
             blur = np.hypot(sensor.defocus_sigma,
-                            sensor.defocus_slope * (depth - self._focus[int(f.camera[i])]))
+                            sensor.defocus_slope * (depth - self._focus(cam)))
             got = marker_signal(cam, centres, self.settings.marker_radius, sensor,
                                 0.0 if clean else blur)
             if got is not None:
@@ -261,23 +380,38 @@ class SimResult:
                                     'glint_rate': 0.0})
         background = None
         if not clean and (sensor.clutter_level > 0 or sensor.clutter_spots > 0):
-            background = self._clutter(int(f.camera[i]), sensor)
+            background = self._clutter(j, sensor, epoch)
         return expose(cam, patches, rng, sensor, encoding, background)
 
-    def _clutter(self, j, sensor):
-        """Return the static scene behind camera ``j`` (drawn once per camera and sensor)."""
-        key = (j, sensor.clutter_level, sensor.clutter_spots, sensor.peak)
+    def _clutter(self, j, sensor, epoch=0):
+        """
+        Return the static scene behind camera ``j`` in its epoch ``epoch`` (cached).
+
+        Epoch 0's is drawn once per camera and sensor.  The scene is far compared with a
+        knock's translation, so a later epoch sees it through the pure-rotation homography
+        H = K_e R_e R_0^T K_0^-1 from epoch 0's image (R world-to-camera rotations, K camera
+        matrices): a turn R_delta = R_e R_0^T gives K R_delta K^-1, a focus change K_e K_0^-1.
+        """
+        key = (j, epoch, sensor.clutter_level, sensor.clutter_spots, sensor.peak)
         if key not in self._clutter_cache:
-            cam = self.cameras[j]
-            self._clutter_cache[key] = clutter_scene(cam.width, cam.height, sensor,
-                                                     np.random.default_rng([self.seed, 2027, j]))
+            cam0 = self.camera_epochs[j][0][1]
+            if epoch == 0:
+                scene = clutter_scene(cam0.width, cam0.height, sensor,
+                                      np.random.default_rng([self.seed, 2027, j]))
+            else:
+                cam = self.camera_epochs[j][epoch][1]
+                H = cam.K @ cam.rotation @ cam0.rotation.T @ np.linalg.inv(cam0.K)
+                scene = cv2.warpPerspective(self._clutter(j, sensor, 0), H,
+                                            (cam0.width, cam0.height), flags=cv2.INTER_LINEAR,
+                                            borderMode=cv2.BORDER_REPLICATE)
+            self._clutter_cache[key] = scene
         return self._clutter_cache[key]
 
-    @property
-    def _focus(self):
+    def _focus(self, cam):
+        """Return the depth in ``cam`` of the workspace centre, where the lens is focused."""
         centre = 0.5 * (np.asarray(self.settings.workspace_min) +
                         np.asarray(self.settings.workspace_max))
-        return [float(c.to_camera(centre[None])[0, 2]) for c in self.cameras]
+        return float(cam.to_camera(centre[None])[0, 2])
 
     def iter_images(self, encoding='mono8'):
         """Yield (frame index, camera name, image) in bag order."""
@@ -394,6 +528,62 @@ def place_cameras(s: SimSettings, rng):
     return cams
 
 
+def check_camera_changes(s: SimSettings):
+    """Raise ValueError if a change of ``s`` names an unknown camera or is not in the session."""
+    names = list(s.camera_names)
+    for c in s.camera_changes:
+        if c.camera not in names:
+            raise ValueError(f'camera_changes: unknown camera {c.camera!r}; the cameras are '
+                             f'{names}')
+        if c.time_s >= s.duration:
+            raise ValueError(f'camera_changes: time_s of the change of {c.camera!r} must be '
+                             f'before the end of the session ({s.duration} s), got {c.time_s}')
+
+
+def _unit(v):
+    return v / np.linalg.norm(v)
+
+
+def camera_epochs(cameras, changes, seed, start_ns=START_TIME_NS):
+    """
+    Return ({camera index: [(start ns, Camera)]}, change log) for ``changes`` of ``cameras``.
+
+    Changes apply in time order, each on top of the camera's previous state; change k (its
+    index in ``changes``) draws its rotation axis and translation direction, uniform on the
+    sphere, from its own stream ``default_rng([seed, 4099, k])``.  Changes of one camera at
+    the same nanosecond make one epoch.  The log has per change: camera, time_ns (bag time),
+    time_s, rotation_deg, translation_mm, focal_percent, epoch (the index of the camera-set
+    state it starts, :attr:`SimResult.camera_set_epochs`), rotation_axis and
+    translation_direction (base frame).
+    """
+    names = [c.name for c in cameras]
+    epochs = {j: [(int(start_ns), c)] for j, c in enumerate(cameras)}
+    times = sorted({int(start_ns) + round(c.time_s * 1e9) for c in changes})
+    log = []
+    for k in sorted(range(len(changes)), key=lambda k: changes[k].time_s):
+        change = changes[k]
+        if change.camera not in names:
+            raise ValueError(f'camera_changes: unknown camera {change.camera!r}; the cameras '
+                             f'are {names}')
+        j = names.index(change.camera)
+        rng = np.random.default_rng([int(seed), 4099, k])
+        axis, direction = _unit(rng.standard_normal(3)), _unit(rng.standard_normal(3))
+        t_ns = int(start_ns) + round(change.time_s * 1e9)
+        cam = change.apply(epochs[j][-1][1], axis, direction)
+        if epochs[j][-1][0] == t_ns:
+            epochs[j][-1] = (t_ns, cam)
+        else:
+            epochs[j].append((t_ns, cam))
+        log.append({'camera': change.camera, 'time_ns': t_ns, 'time_s': change.time_s,
+                    'rotation_deg': change.rotation_deg,
+                    'translation_mm': change.translation_mm,
+                    'focal_percent': change.focal_percent,
+                    'epoch': 1 + times.index(t_ns),
+                    'rotation_axis': [float(x) for x in axis],
+                    'translation_direction': [float(x) for x in direction]})
+    return epochs, log
+
+
 def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, chain=None):
     """
     Simulate a cell; returns a :class:`SimResult` (no images are rendered until asked).
@@ -406,6 +596,7 @@ def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, ch
     s = settings or SimSettings()
     if duration is not None:
         s = SimSettings(**{**s.__dict__, 'duration': float(duration)})
+    check_camera_changes(s)
     seed = int(seed)
     rng = np.random.default_rng(seed)
     chain = chain or load_chain(s)
@@ -499,6 +690,10 @@ def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, ch
     sort = np.argsort(log, kind='stable')
     cam_idx, t_exp, stamp, log, hidden = (a[sort] for a in (cam_idx, t_exp, stamp, log, hidden))
 
+    to_ns = (lambda t: START_TIME_NS + np.round(t * 1e9).astype(np.int64))
+    exposure_ns = to_ns(t_exp)
+    epochs, change_log = camera_epochs(cams, s.camera_changes, seed)
+
     t_all = (t_exp[:, None] + offsets[None, :]).reshape(-1)
     q_all = traj.positions(t_all)
     x_all = robot.marker(q_all).reshape(len(t_exp), K, 3)
@@ -506,20 +701,22 @@ def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, ch
     x_mid = robot.marker(q_mid)
     uv = np.zeros((len(t_exp), 2))
     occ = np.zeros(len(t_exp), np.int8)
-    for j, cam in enumerate(cams):
-        m = cam_idx == j
-        if not np.any(m):
-            continue
-        uv[m] = cam.project(x_mid[m])
-        out = ~cam.in_front(x_mid[m]) | (uv[m, 0] < -0.5) | (uv[m, 1] < -0.5) \
-            | (uv[m, 0] > cam.width - 0.5) | (uv[m, 1] > cam.height - 0.5)
-        by_link = link_occluded(chain, q_mid[m], robot.nominal_marker(q_mid[m]), cam.center,
-                                s.link_radius, s.occlusion_clearance)
-        code = np.where(hidden[m], OCCLUSION_RANDOM, OCCLUSION_NONE)
-        code = np.where(by_link, OCCLUSION_LINK, code)
-        occ[m] = np.where(out, OUTSIDE_IMAGE, code)
-    to_ns = (lambda t: START_TIME_NS + np.round(t * 1e9).astype(np.int64))
-    frames = FrameTruth(cam_idx, to_ns(stamp), to_ns(t_exp), to_ns(log), x_mid, uv, occ, x_all)
+    for j in range(len(cams)):
+        starts = np.array([start for start, _ in epochs[j]], np.int64)
+        which = np.maximum(np.searchsorted(starts, exposure_ns, side='right') - 1, 0)
+        for e, (_, cam) in enumerate(epochs[j]):
+            m = (cam_idx == j) & (which == e)
+            if not np.any(m):
+                continue
+            uv[m] = cam.project(x_mid[m])
+            out = ~cam.in_front(x_mid[m]) | (uv[m, 0] < -0.5) | (uv[m, 1] < -0.5) \
+                | (uv[m, 0] > cam.width - 0.5) | (uv[m, 1] > cam.height - 0.5)
+            by_link = link_occluded(chain, q_mid[m], robot.nominal_marker(q_mid[m]),
+                                    cam.center, s.link_radius, s.occlusion_clearance)
+            code = np.where(hidden[m], OCCLUSION_RANDOM, OCCLUSION_NONE)
+            code = np.where(by_link, OCCLUSION_LINK, code)
+            occ[m] = np.where(out, OUTSIDE_IMAGE, code)
+    frames = FrameTruth(cam_idx, to_ns(stamp), exposure_ns, to_ns(log), x_mid, uv, occ, x_all)
 
     spans = traj.dwells()
     spans = spans[spans[:, 0] < T]
@@ -529,9 +726,11 @@ def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, ch
                         robot.nominal_marker(q_d))
     return SimResult(scenario, seed, s, robot, cams, traj, pub_names, js_stamps,
                      np.ascontiguousarray(pos_all[:, order]),
-                     np.ascontiguousarray(vel_all[:, order]), frames, dwells)
+                     np.ascontiguousarray(vel_all[:, order]), frames, dwells,
+                     camera_epochs=epochs, change_log=change_log)
 
 
-__all__ = ['SCENARIOS', 'SimSettings', 'SimResult', 'DwellTruth', 'FrameTruth',
+__all__ = ['SCENARIOS', 'CameraChange', 'SimSettings', 'SimResult', 'DwellTruth', 'FrameTruth',
            'simulate_cell', 'link_occluded', 'default_urdf_path', 'OCCLUSION_NONE',
-           'OCCLUSION_LINK', 'OCCLUSION_RANDOM', 'OUTSIDE_IMAGE']
+           'OCCLUSION_LINK', 'OCCLUSION_RANDOM', 'OUTSIDE_IMAGE', 'camera_epochs',
+           'check_camera_changes']

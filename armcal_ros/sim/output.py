@@ -11,8 +11,13 @@ nominal model at the joint readings (so it carries the same bias as the joint st
 Ground truth goes to ``<bag>/ground_truth/`` (inside the bag directory, beside the storage
 file, so it travels with the bag; rosbag2 readers ignore it):
 
-- ``<cam>.yaml`` and ``extrinsics.yaml``: the true cameras (the calibrator's output formats,
-  :mod:`armcal_ros.io.calib_files`);
+- ``<cam>.yaml`` and ``extrinsics.yaml``: the true cameras at the end of the session (the
+  calibrator's output formats, :mod:`armcal_ros.io.calib_files`);
+- only when cameras change during the session (:class:`~armcal_ros.sim.cell.CameraChange`):
+  ``epochs/epoch_<k>/`` the same files for each state k = 0, 1, ... of the camera set (0 the
+  start), and ``changes.yaml``, per change in time order: camera, time_ns (bag time), time_s,
+  rotation_deg, translation_mm, focal_percent, epoch (the state it starts), rotation_axis and
+  translation_direction (unit vectors, base frame);
 - ``markers.npz``: per dwell ``dwell_start_ns``, ``dwell_end_ns``, ``dwell_stamp_ns`` (middle),
   ``dwell_q`` (D, n) in ``joint_names`` order, ``dwell_true`` and ``dwell_nominal`` (D, 3) marker
   positions in the base frame (m); per frame ``frame_camera`` (index into ``camera_names``),
@@ -46,7 +51,15 @@ def write_ground_truth(result, directory, topics=None):
     """Write the ground-truth files of ``result`` into ``directory`` (created)."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    write_cameras(directory, result.cameras, result.settings.base_frame)
+    base = result.settings.base_frame
+    write_cameras(directory, result.final_cameras, base)
+    if result.change_log:
+        for k, (_, cams) in enumerate(result.camera_set_epochs):
+            epoch_dir = directory / 'epochs' / f'epoch_{k}'
+            epoch_dir.mkdir(parents=True, exist_ok=True)
+            write_cameras(epoch_dir, cams, base)
+        atomic_write_text(directory / 'changes.yaml',
+                          yaml.safe_dump(result.change_log, sort_keys=False))
     d, f = result.dwells, result.frames
     tmp = directory / '.markers.tmp.npz'
     np.savez_compressed(
@@ -164,10 +177,19 @@ def write_sim_bag(result, path, storage='mcap', compressed=None, encoding='mono8
 
 
 def read_ground_truth(directory):
-    """Load markers.npz and scenario.yaml of a ground-truth directory into one dictionary."""
+    """
+    Load a ground-truth directory into one dictionary.
+
+    The arrays of markers.npz, ``scenario`` (scenario.yaml) and ``changes`` (changes.yaml, []
+    when the cameras did not change).
+    """
     directory = Path(directory)
     with np.load(directory / 'markers.npz') as z:
         out = {k: z[k] for k in z.files}
     with open(directory / 'scenario.yaml', encoding='utf-8') as f:
         out['scenario'] = yaml.safe_load(f)
+    out['changes'] = []
+    if (directory / 'changes.yaml').exists():
+        with open(directory / 'changes.yaml', encoding='utf-8') as f:
+            out['changes'] = yaml.safe_load(f) or []
     return out

@@ -1,0 +1,251 @@
+"""
+Following a cell that changes: the engine's record of declared changes and recalibrations.
+
+:class:`~armcal_ros.core.change.ChangeMonitor` tests each new sample against the current
+calibration.  This module keeps what the engine needs around it:
+
+- the *epochs*: a change starts a new one; the changed camera's observations from before it are
+  retired in the store (kept, tagged, unused), every other camera and the arm keep theirs;
+- the cameras being recalibrated: a camera that moved is withheld (its calibration no longer
+  describes it) until it has ``recalibration_samples`` new observations and a solve that
+  includes them has been accepted; it is then started from a PnP of its new observations with
+  its old intrinsics, and the accepted result says what changed (the pose by so many degrees and
+  millimetres, or the lens: a focal length outside 4 combined standard deviations);
+- the events, for /diagnostics, report.json and a restart (``changes.json`` beside the
+  calibration).
+
+docs/ARCHITECTURE.md, "When a camera moves", has the flow and the reasons for the defaults.
+"""
+
+import json
+import os
+from dataclasses import asdict, dataclass, field
+from typing import Dict, List, Optional
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from armcal_ros.core.change import (ARM_SIGMA_FLOOR, ChangeEvent, ChangeMonitor,
+                                    ChangeSettings, PredictionModel, reference_scales)
+from armcal_ros.io.calib_files import atomic_write_text
+
+CHANGES_FILE = 'changes.json'
+#: A lens change is declared when a recalibrated camera's focal length moved by more than this
+#: many combined standard deviations (old and new): the published deviations are honest to
+#: within a factor of about two (docs/NOISE_MODELS.md), so 4 keeps a pose change whose focal
+#: length merely wandered from being called a lens change.
+LENS_CHANGE_SIGMAS = 4.0
+#: Samples of the calibration's own that calibrate the monitor's scale: the median of a few
+#: hundred is within a few per cent, and the cost stays a fraction of a second.
+REFERENCE_SAMPLES = 300
+
+
+@dataclass
+class ChangeRecord:
+    """One declared change and what became of it (JSON-serialisable)."""
+
+    kind: str                      # 'camera', 'arm' or 'unexplained'
+    camera: Optional[str]
+    epoch: int
+    onset_ns: int
+    detected_ns: int
+    statistic: float
+    threshold: float
+    samples: int
+    evidence: Dict[str, float] = field(default_factory=dict)
+    retired: int = 0               # observations retired
+    status: str = 'recalibrating'  # 'recalibrating', 'recalibrated', 'reported'
+    what: str = ''                 # 'pose', 'lens', 'arm or marker'
+    rotation_deg: float = float('nan')
+    translation_mm: float = float('nan')
+    focal_percent: float = float('nan')
+    new_observations: int = 0
+
+    def summary(self, start_ns=0):
+        """Return one line for a log or /diagnostics."""
+        t = (self.onset_ns - start_ns) * 1e-9
+        if self.kind == 'disagreement':
+            return (f'{self.camera}: views from t = {t:.1f} s disagreed with its calibration, '
+                    'but no new pose explains them (bad detections?); nothing changed')
+        if self.kind == 'arm':
+            return (f'the arm or marker changed at t = {t:.1f} s (every camera disagreed with '
+                    f'the arm, not with each other): {self.retired} older observations retired')
+        head = f'{self.camera} changed at t = {t:.1f} s'
+        if self.status == 'recalibrating':
+            return (f'{head}: recalibrating, {self.new_observations} of the observations needed '
+                    'so far')
+        size = (f'{self.rotation_deg:.2f} deg / {self.translation_mm:.1f} mm, focal '
+                f'{self.focal_percent:+.2f} %')
+        return f'{head}: {self.what} ({size}), recalibrated'
+
+
+def _json_safe(d):
+    return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in d.items()}
+
+
+class ChangeTracker:
+    """The engine's change detection state (thread safety: the engine's lock)."""
+
+    def __init__(self, settings: ChangeSettings = None, recalibration_samples=20,
+                 enabled=True):
+        self.settings = (settings or ChangeSettings()).validate()
+        if int(recalibration_samples) != recalibration_samples or recalibration_samples < 6:
+            raise ValueError('recalibration_samples must be an integer >= 6 (a camera has 6 '
+                             f'pose parameters), got {recalibration_samples!r}')
+        self.recalibration_samples = int(recalibration_samples)
+        self.enabled = bool(enabled)
+        self.monitor: Optional[ChangeMonitor] = None
+        self.records: List[ChangeRecord] = []
+        self.epoch = 0
+        #: camera -> (its record, its last calibration before the change)
+        self.recalibrating: Dict[str, tuple] = {}
+
+    # -- the predictor ---------------------------------------------------------------------
+    def build_monitor(self, calibration, arrays, arm_sigma) -> Optional[ChangeMonitor]:
+        """
+        Return a monitor of an accepted calibration, scaled on the samples it was solved on.
+
+        The cameras being recalibrated are left out.  Built outside the engine's lock (the
+        scales take a fraction of a second); the engine swaps it in.
+        """
+        if not self.enabled or calibration is None:
+            return None
+        cams, sig = {}, {}
+        fallback = calibration.hyperparameters.get('pixel_sigma', float('nan'))
+        for name, c in calibration.cameras.items():
+            if name in self.recalibrating:
+                continue
+            s = c.sigma_px if np.isfinite(c.sigma_px) and c.sigma_px > 0 else fallback
+            if not (np.isfinite(s) and s > 0):
+                continue
+            cams[name], sig[name] = c.camera, float(s)
+        if not cams:
+            return None
+        model = PredictionModel(cams, sig, max(float(arm_sigma), ARM_SIGMA_FLOOR))
+        points, obs = per_point(arrays, limit=REFERENCE_SAMPLES)
+        return ChangeMonitor(model, reference_scales(model, points, obs), self.settings)
+
+    def observe(self, sample) -> Optional[ChangeEvent]:
+        """Test one new sample; return the event if a change is declared."""
+        if self.monitor is None or sample.reference_points is not None:
+            return None
+        uvs = {n: o.uv[0] for n, o in sample.observations.items()}
+        stamps = [o.stamp_ns for o in sample.observations.values() if o.stamp_ns]
+        stamp = min(stamps) if stamps else sample.stamp_ns
+        return self.monitor.observe(sample.point_nominal, uvs, stamp)
+
+    # -- events ----------------------------------------------------------------------------
+    def declare(self, event: ChangeEvent, store, calibration) -> ChangeRecord:
+        """Start a new epoch for ``event``: retire the old observations, note the camera."""
+        self.epoch += 1
+        if event.kind == 'disagreement':
+            # One camera's views disagree and no new pose explains them: bad detections, not
+            # a change.  Reported; nothing is retired and no epoch starts.
+            self.epoch -= 1
+            rec = ChangeRecord(event.kind, event.camera, self.epoch, event.onset_ns,
+                               event.detected_ns, event.statistic, event.threshold,
+                               event.samples, {k: float(v) for k, v in event.evidence.items()},
+                               status='reported', what='views not explained by a change')
+            self.records.append(rec)
+            return rec
+        camera = event.camera if event.kind in ('camera', 'unexplained') else None
+        rec = ChangeRecord(event.kind, camera, self.epoch, event.onset_ns, event.detected_ns,
+                           event.statistic, event.threshold, event.samples,
+                           {k: float(v) for k, v in event.evidence.items()})
+        if event.fit is not None:
+            rec.rotation_deg, rec.translation_mm = event.fit.rotation_deg, \
+                event.fit.translation_mm
+            rec.focal_percent = event.fit.focal_percent
+        rec.retired = store.retire(event.onset_ns, self.epoch, camera)
+        if camera is None:
+            rec.status, rec.what = 'reported', 'arm or marker'
+        else:
+            old = calibration.cameras.get(camera) if calibration is not None else None
+            self.recalibrating[camera] = (rec, old)
+        self.records.append(rec)
+        return rec
+
+    def count_new(self, arrays):
+        """Update each recalibrating camera's count of new observations from ``arrays``."""
+        for name, (rec, _) in self.recalibrating.items():
+            if name in arrays.camera_names:
+                j = arrays.camera_names.index(name)
+                rec.new_observations = int(np.count_nonzero(arrays.camera_index == j))
+
+    def ready(self, name):
+        """Return True if camera ``name`` may be solved (not recalibrating, or has enough)."""
+        got = self.recalibrating.get(name)
+        return got is None or got[0].new_observations >= self.recalibration_samples
+
+    def waiting(self):
+        """Return the cameras withheld until they have enough new observations."""
+        return [n for n in self.recalibrating if not self.ready(n)]
+
+    def accepted(self, calibration):
+        """After an accepted solve: close the recalibrations it contains; say what changed."""
+        for name in list(self.recalibrating):
+            if name not in calibration.cameras or not self.ready(name):
+                continue
+            rec, old = self.recalibrating.pop(name)
+            rec.status = 'recalibrated'
+            new = calibration.cameras[name]
+            if old is None:
+                rec.what = 'camera'
+                continue
+            a, b = old.camera, new.camera
+            rec.rotation_deg = float(np.degrees(np.linalg.norm(
+                Rotation.from_matrix(b.rotation @ a.rotation.T).as_rotvec())))
+            rec.translation_mm = float(1e3 * np.linalg.norm(b.center - a.center))
+            rec.focal_percent = float(100.0 * (b.fx / a.fx - 1.0))
+            sf = np.hypot(old.std.get('fx', 0.0), new.std.get('fx', 0.0))
+            lens = sf > 0 and abs(b.fx - a.fx) > LENS_CHANGE_SIGMAS * sf
+            rec.what = 'lens' if lens else 'pose'
+
+    def withheld(self):
+        """Return the cameras whose published calibration no longer holds."""
+        return sorted(self.recalibrating)
+
+    # -- persistence -----------------------------------------------------------------------
+    def save(self, directory):
+        """Write ``changes.json`` (the events and the cameras being recalibrated)."""
+        doc = dict(epoch=self.epoch, records=[_json_safe(asdict(r)) for r in self.records],
+                   recalibrating=sorted(self.recalibrating))
+        path = os.path.join(directory, CHANGES_FILE)
+        atomic_write_text(path, json.dumps(doc, indent=1))
+        return path
+
+    def load(self, directory, calibration):
+        """Restore from ``changes.json`` (nothing if absent); return the number of events."""
+        path = os.path.join(directory, CHANGES_FILE)
+        if not os.path.exists(path):
+            return 0
+        try:
+            with open(path, encoding='utf-8') as f:
+                doc = json.load(f)
+            records = [ChangeRecord(**{k: (float('nan') if v is None else v)
+                                       for k, v in r.items()}) for r in doc['records']]
+            epoch = int(doc['epoch'])
+            waiting = list(doc.get('recalibrating', []))
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f'{path}: not a changes file ({exc})') from exc
+        self.records, self.epoch = records, epoch
+        by_camera = {r.camera: r for r in records if r.camera is not None}
+        self.recalibrating = {
+            n: (by_camera[n], None if calibration is None else calibration.cameras.get(n))
+            for n in waiting if n in by_camera}
+        return len(records)
+
+
+def per_point(arrays, limit=None):
+    """Return (points (N, 3), [name -> uv (2,)] per point) of a store's point-target arrays."""
+    n = len(arrays.points)
+    keep = np.arange(n)
+    if limit is not None and n > limit:
+        keep = np.linspace(0, n - 1, limit).round().astype(int)
+    obs = [dict() for _ in range(n)]
+    for c, p, uv in zip(arrays.camera_index, arrays.point_index, arrays.uv):
+        obs[p][arrays.camera_names[c]] = uv
+    return arrays.points[keep], [obs[i] for i in keep]
+
+
+__all__ = ['ChangeTracker', 'ChangeRecord', 'CHANGES_FILE', 'per_point']

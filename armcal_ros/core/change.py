@@ -1,0 +1,548 @@
+"""
+Change detection: test every new observation against what the current calibration predicts.
+
+A cell changes while it works: a camera is knocked, a lens refocused, a tool changed.  Each new
+sample is tested against the current calibration before it is used.
+
+**Prediction.**  For a sample with the arm's measured point X^ and pooled image points uv_o of
+the calibrated cameras o, camera c's observation is predicted from every *other* source: the
+point
+
+    X~ = argmin_X |X - X^|^2 / s_arm^2 + sum_{o != c} |uv_o - pi_o(X)|^2 / s_o^2
+
+(Gauss-Newton from X^), with H its information matrix, gives
+
+    r_c = uv_c - pi_c(X~),    S_c = s_c^2 I + J_c H^-1 J_c^T,    d_c^2 = r_c^T S_c^-1 r_c.
+
+Leaving camera c out makes r_c independent of c's own error; the other cameras make it
+independent of the arm's error along their rays (with three cameras the arm hardly matters).
+s_o is each camera's image noise from its residuals; s_arm the RMS per axis of what the
+adjustment corrected the arm's points by (at least :data:`ARM_SIGMA_FLOOR`).  The model is then
+calibrated on the calibration's own samples: k_c^2 = median(d_c^2) / (2 ln 2) (the median of
+chi^2 with 2 degrees of freedom), so d_c^2 / k_c^2 is chi^2(2) when nothing has changed, whatever
+the noise model left out (a robust scale; one bad detection cannot move it).
+
+**Sequential test.**  Page's CUSUM on each camera's statistics: with g = min(d^2 / k^2, cap) - c,
+
+    S_0 = 0,    S_k = max(0, S_(k-1) + g_k),    a change when S_k > h.
+
+Under no change d^2 / k^2 is chi^2_2 (exponential, mean 2), so with the reference c = 4 the drift
+is negative and S keeps returning to zero; a camera whose statistics average above c climbs.
+h is set so that the average run length under no change is 1 / ``false_alarm`` views (computed
+by the Markov-chain method of Brook and Evans, :func:`threshold`): one false alarm per million
+views of a camera by default.  The cap 3 c, with h above 2 (cap - c), makes at least three
+disagreeing observations necessary, so a lone mis-detection never fires; the onset is the first
+observation after S last stood at zero, refined by the refit (below).
+
+**Attribution.**  When a window fires, the samples since the onset are explained in turn:
+- a camera moved if, leaving it out, the others and the arm agree (the fusion's whitened
+  residual sum is within its chi^2 quantile at ``false_alarm``), the camera that leaves the best
+  agreement is the one;
+- the arm or the marker changed if no single camera explains it but the cameras agree with each
+  other without the arm (every camera sees the points move the same way: a new tool, a re-homed
+  joint);
+- otherwise the change is reported as unexplained, against the camera whose window fired.
+Whether a moved camera's pose or its intrinsics changed is told from a fit of its new
+observations (the engine's PnP with the old intrinsics), not here.
+"""
+
+from collections import deque
+from dataclasses import dataclass, field
+from functools import lru_cache
+from math import log
+from typing import Dict, List, Optional
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from armcal_ros.core.camera import Camera, project_with_jacobians
+
+#: Floor of the arm's per-axis error (m) when the model corrected nothing (``fixed``): the
+#: repeatability of a good industrial arm (ISO 9283 figures of 0.02-0.1 mm); only the spread
+#: of the prediction along rays no other camera constrains depends on it.
+ARM_SIGMA_FLOOR = 1e-4
+#: Gauss-Newton steps of the fusion: it starts within millimetres, where the projection is
+#: nearly linear; two steps leave sub-micrometre changes.
+FUSION_ITERATIONS = 3
+#: Statistics a camera needs in the calibration's own samples before its scale is trusted;
+#: with fewer, the model's own scale (1) is used.
+MIN_REFERENCE = 10
+MEDIAN_CHI2_2 = 2.0 * log(2.0)
+#: Views of a suspect camera from the onset on before it is judged: 12 equations for the 7
+#: parameters of a new pose and focal length leave 5 degrees of freedom to tell a moved camera
+#: (explained) from a burst of bad detections (not).
+CONFIRM_OBSERVATIONS = 6
+#: Views beyond CONFIRM_OBSERVATIONS collected before the judgement, so that the change point
+#: can be moved past up to this many old views that happened to start the CUSUM's climb.
+ONSET_SLACK = 2
+
+
+@dataclass
+class ChangeSettings:
+    """The CUSUM's reference (in units of chi^2_2) and its false-alarm probability per cycle."""
+
+    reference: float = 4.0
+    false_alarm: float = 1e-6
+
+    def validate(self):
+        """Check the settings; return self."""
+        if not (np.isfinite(self.reference) and self.reference > 2.0):
+            raise ValueError('change reference must be > 2 (the mean of chi^2_2 under no '
+                             f'change), got {self.reference}')
+        if not 0 < self.false_alarm < 0.5:
+            raise ValueError(f'change false_alarm must be in (0, 0.01], got {self.false_alarm}')
+        if not self.false_alarm <= 1e-2:
+            raise ValueError(f'change false_alarm must be at most 0.01 per view (a false '
+                             f'alarm every 100 views or fewer is no test), got '
+                             f'{self.false_alarm}')
+        h = threshold(self.reference, self.false_alarm)
+        if h <= 2.0 * (cap_of(self.reference) - self.reference):
+            raise ValueError(f'change false_alarm {self.false_alarm} is too high for reference '
+                             f'{self.reference}: two views could raise an alarm (threshold '
+                             f'{h:.1f})')
+        return self
+
+
+def _arl(h, reference, cap, cells=200):
+    """
+    Return the CUSUM's average run length under no change (Brook and Evans, 1972).
+
+    S is discretised on ``cells`` points of [0, h); the increment g = min(X, cap) - c with X
+    exponential of mean 2 (chi^2_2) has the CDF F(x) = 1 - exp(-(x + c) / 2) below cap - c and
+    1 above; L solves (I - Q) L = 1 with Q the transitions among the states below h.
+    """
+    w = h / cells
+    v = np.arange(cells) * w
+
+    def cdf(x):
+        x = np.asarray(x, float)
+        out = 1.0 - np.exp(-np.maximum(x + reference, 0.0) / 2.0)
+        return np.where(x >= cap - reference, 1.0, out)
+
+    edges = (np.arange(cells + 1) - 0.5) * w             # state k holds [k - 1/2, k + 1/2) w
+    edges[0] = -np.inf
+    F = cdf(edges[None, 1:] - v[:, None])               # P(v + g < upper edge of k)
+    lower = np.concatenate([np.zeros((cells, 1)), F[:, :-1]], axis=1)
+    Q = F - lower
+    L = np.linalg.solve(np.eye(cells) - Q, np.ones(cells))
+    return float(L[0])
+
+
+def cap_of(reference):
+    """Return the clip of one view's statistic: 3 c (chi^2_2 beyond it: 0.25 % at c = 4)."""
+    return 3.0 * reference
+
+
+@lru_cache(maxsize=32)
+def threshold(reference, false_alarm):
+    """
+    Return the CUSUM threshold h whose false alarms come once per 1 / ``false_alarm`` views.
+
+    The average run length under no change (:func:`_arl`, cap :func:`cap_of`) rises
+    monotonically with h; h is found by bisection on log h.
+    """
+    lo, hi = 1e-3, 1e3
+    for _ in range(60):
+        mid = np.sqrt(lo * hi)
+        if _arl(mid, reference, cap_of(reference)) * false_alarm < 1.0:
+            lo = mid
+        else:
+            hi = mid
+    return float(hi)
+
+
+@dataclass
+class PredictionModel:
+    """The current calibration as a predictor: cameras, their image noise, the arm's error."""
+
+    cameras: Dict[str, Camera]
+    sigma_px: Dict[str, float]
+    arm_sigma: float
+
+    def __post_init__(self):
+        for name, s in self.sigma_px.items():
+            if not (np.isfinite(s) and s > 0):
+                raise ValueError(f'sigma_px[{name!r}] must be finite and > 0, got {s}')
+        if not (np.isfinite(self.arm_sigma) and self.arm_sigma > 0):
+            raise ValueError(f'arm_sigma must be finite and > 0 (m), got {self.arm_sigma}')
+
+
+@dataclass
+class Fusion:
+    """A point fused from the arm and some cameras: X (3,), H^-1 (3, 3), whitened chi^2, dof."""
+
+    X: np.ndarray
+    cov: np.ndarray
+    chi2: float
+    dof: int
+
+
+def fuse(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=None,
+         use_arm=True) -> Optional[Fusion]:
+    """
+    Fuse the arm's point ``X0`` (3,) with the cameras' points ``uvs`` (name -> (2,)).
+
+    Minimises |X - X0|^2 / s_arm^2 (if ``use_arm``) + sum_o |uv_o - pi_o(X)|^2 / (k_o^2 s_o^2)
+    by Gauss-Newton; ``scales`` maps cameras to k_o^2 (default 1).  The chi^2 is the whitened
+    residual sum at the solution, with 2 m + 3 - 3 degrees of freedom (m cameras) with the arm,
+    2 m - 3 without.  None when the cameras alone cannot fix the point (fewer than two).
+    """
+    X0 = np.asarray(X0, float).reshape(3)
+    names = [n for n in uvs if n in model.cameras]
+    if not use_arm and len(names) < 2:
+        return None
+    w_arm = 1.0 / model.arm_sigma ** 2 if use_arm else 0.0
+    X = X0.copy()
+    H = np.eye(3) * w_arm
+    for _ in range(FUSION_ITERATIONS):
+        H = np.eye(3) * w_arm
+        g = w_arm * (X0 - X)
+        for n in names:
+            cam = model.cameras[n]
+            pj = project_with_jacobians(cam.intrinsics(), cam.dist, cam.rotation,
+                                        cam.translation, X[None])
+            w = 1.0 / (model.sigma_px[n] ** 2 * (1.0 if scales is None else scales.get(n, 1.0)))
+            J = pj.d_point[0]
+            H += w * J.T @ J
+            g += w * J.T @ (np.asarray(uvs[n], float).reshape(2) - pj.uv[0])
+        try:
+            X = X + np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            return None
+    chi = w_arm * float(np.sum((X - X0) ** 2))
+    for n in names:
+        w = 1.0 / (model.sigma_px[n] ** 2 * (1.0 if scales is None else scales.get(n, 1.0)))
+        chi += w * float(np.sum((np.asarray(uvs[n], float).reshape(2) -
+                                 model.cameras[n].project(X[None])[0]) ** 2))
+    dof = 2 * len(names) - (0 if use_arm else 3)
+    try:
+        cov = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return None
+    return Fusion(X, cov, chi, dof)
+
+
+def innovation(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], camera):
+    """
+    Return (r (2,), S (2, 2), d^2) of ``camera``'s observation predicted from the rest.
+
+    See the module docstring; None when the camera is not in the model or not in ``uvs``.
+    """
+    if camera not in model.cameras or camera not in uvs:
+        return None
+    others = {n: uv for n, uv in uvs.items() if n != camera}
+    f = fuse(model, X0, others)
+    if f is None:
+        return None
+    cam = model.cameras[camera]
+    pj = project_with_jacobians(cam.intrinsics(), cam.dist, cam.rotation, cam.translation,
+                                f.X[None])
+    if pj.depth[0] <= 0:
+        return None
+    J = pj.d_point[0]
+    r = np.asarray(uvs[camera], float).reshape(2) - pj.uv[0]
+    S = model.sigma_px[camera] ** 2 * np.eye(2) + J @ f.cov @ J.T
+    return r, S, float(r @ np.linalg.solve(S, r))
+
+
+def statistics(model: PredictionModel, X0, uvs: Dict[str, np.ndarray]) -> Dict[str, float]:
+    """Return d^2 of every modelled camera in ``uvs`` (see :func:`innovation`)."""
+    out = {}
+    for name in uvs:
+        got = innovation(model, X0, uvs, name)
+        if got is not None and np.isfinite(got[2]):
+            out[name] = got[2]
+    return out
+
+
+def reference_scales(model: PredictionModel, points, observations) -> Dict[str, float]:
+    """
+    Return k_c^2 per camera from the calibration's own samples (module docstring).
+
+    ``points`` (N, 3) the arm's points, ``observations`` a list of N dicts name -> uv (2,).
+    """
+    d2 = {}
+    for X0, uvs in zip(points, observations):
+        for name, v in statistics(model, X0, uvs).items():
+            d2.setdefault(name, []).append(v)
+    return {name: (float(np.median(v)) / MEDIAN_CHI2_2 if len(v) >= MIN_REFERENCE else 1.0)
+            for name, v in d2.items()}
+
+
+@dataclass
+class ChangeEvent:
+    """
+    A declared change.
+
+    ``kind``: 'camera' (``camera`` moved or changed its lens; ``fit`` says by how much), 'arm'
+    (the arm or the marker changed: every camera sees it), 'unexplained', or 'disagreement'
+    (one camera's views disagree but no new pose explains them: bad detections, not a change;
+    nothing is retired); ``onset_ns`` the stamp of the first
+    observation that disagreed, ``detected_ns`` the stamp at which the test fired;
+    ``statistic`` the CUSUM that fired against ``threshold``;
+    ``evidence`` what the attribution measured (chi^2 over its quantile per hypothesis).
+    """
+
+    kind: str
+    camera: Optional[str]
+    onset_ns: int
+    detected_ns: int
+    statistic: float
+    threshold: float
+    samples: int
+    evidence: Dict[str, float] = field(default_factory=dict)
+    fit: Optional['CameraChangeFit'] = None
+
+
+@dataclass
+class _Seen:
+    stamp_ns: int
+    X0: np.ndarray
+    uvs: Dict[str, np.ndarray]
+
+
+@dataclass
+class CameraChangeFit:
+    """
+    A suspect camera refitted to its new views.
+
+    ``rotation_deg``, ``translation_mm`` the pose change (rotation angle, optical-centre shift),
+    ``focal_percent`` the focal-length change; ``ratio`` the refit's chi^2 over its quantile at
+    the false-alarm probability (at most 1: the change explains the views); ``used`` the
+    stamps of the views.
+    """
+
+    rotation_deg: float
+    translation_mm: float
+    focal_percent: float
+    ratio: float
+    used: List[int]
+    old_d2: np.ndarray = None       # each view's whitened residual^2, the old camera
+    new_d2: np.ndarray = None       # and the refitted one
+
+
+def explain_by_camera_change(model: PredictionModel, camera, seen, scales=None,
+                             false_alarm=1e-6, iterations=8) -> CameraChangeFit:
+    """
+    Refit ``camera``'s pose and focal length to its views in ``seen``; say if that explains them.
+
+    Each view's point is fused from the arm and the other cameras (:func:`fuse`), with
+    covariance P_i; the residual r_i = uv_i - pi(R(w) , t + dt, s f; X_i) is whitened by
+    S_i = k^2 s^2 I + J_i P_i J_i^T, and Gauss-Newton finds (w, dt, s) from the old camera.
+    The 2 n - 7 degrees of freedom left judge the fit.
+    """
+    cam0 = model.cameras[camera]
+    k2 = 1.0 if scales is None else scales.get(camera, 1.0)
+    pts, uv, covs, used = [], [], [], []
+    for s in seen:
+        f = fuse(model, s.X0, {n: v for n, v in s.uvs.items() if n != camera})
+        if f is None:
+            continue
+        pts.append(f.X)
+        covs.append(f.cov)
+        uv.append(s.uvs[camera])
+        used.append(s.stamp_ns)
+    X, uv, P = np.array(pts).reshape(-1, 3), np.array(uv).reshape(-1, 2), np.array(covs)
+    n = len(X)
+
+    def whitened(c, sc):
+        intr = np.array([c.fx * sc, c.fy * sc, c.cx, c.cy])
+        pj = project_with_jacobians(intr, c.dist, c.rotation, c.translation, X)
+        S = model.sigma_px[camera] ** 2 * k2 * np.eye(2) + pj.d_point @ P @ \
+            np.transpose(pj.d_point, (0, 2, 1))
+        L = np.linalg.cholesky(np.linalg.inv(S))            # L L^T = S^-1
+        Lt = np.transpose(L, (0, 2, 1))
+        r = np.einsum('nij,nj->ni', Lt, uv - pj.uv)
+        J = np.concatenate([pj.d_pose, (pj.uv - intr[2:])[:, :, None] / sc], axis=2)
+        return r.reshape(-1), np.einsum('nij,njk->nik', Lt, J).reshape(-1, 7)
+
+    def refine(cam):
+        scale = 1.0
+        for _ in range(iterations):
+            r, J = whitened(cam, scale)
+            step = np.linalg.lstsq(J, r, rcond=None)[0]
+            cam.apply_pose_increment(step[:3], step[3:6])
+            scale += step[6]
+            if np.max(np.abs(step[:6])) < 1e-10 and abs(step[6]) < 1e-12:
+                break
+        r, _ = whitened(cam, scale)
+        return cam, scale, r
+
+    r_old, _ = whitened(cam0, 1.0)
+    # From the old pose (a knock of a few degrees), and from a PnP with the old lens (a camera
+    # moved further than Gauss-Newton reaches from there); the better fit is kept.
+    starts = [cam0.copy()]
+    if n >= 4:
+        ok, rvec, tvec = cv2.solvePnP(X.reshape(-1, 1, 3), uv.reshape(-1, 1, 2), cam0.K,
+                                      cam0.dist, flags=cv2.SOLVEPNP_EPNP)
+        if ok:
+            start = cam0.copy()
+            start.rotation = cv2.Rodrigues(rvec)[0]
+            start.translation = np.asarray(tvec, float).reshape(3)
+            starts.append(start)
+    fits = []
+    for start in starts:
+        try:
+            fits.append(refine(start))
+        except np.linalg.LinAlgError:
+            continue
+    if not fits:
+        return CameraChangeFit(float('nan'), float('nan'), float('nan'), float('inf'), used,
+                               np.sum(r_old.reshape(-1, 2) ** 2, axis=1),
+                               np.full(n, np.inf))
+    cam, scale, r = min(fits, key=lambda f: float(f[2] @ f[2]) if np.all(np.isfinite(f[2]))
+                        else np.inf)
+    dof = 2 * n - 7
+    ratio = (float(r @ r) / float(chi2.isf(false_alarm, dof)) if dof > 0 else float('nan'))
+    angle = np.linalg.norm(Rotation.from_matrix(cam.rotation @ cam0.rotation.T).as_rotvec())
+    return CameraChangeFit(float(np.degrees(angle)),
+                           float(1e3 * np.linalg.norm(cam.center - cam0.center)),
+                           float(100.0 * (scale - 1.0)), ratio, used,
+                           np.sum(r_old.reshape(-1, 2) ** 2, axis=1),
+                           np.sum(r.reshape(-1, 2) ** 2, axis=1))
+
+
+class ChangeMonitor:
+    """
+    The sequential test of every camera against a :class:`PredictionModel`.
+
+    :meth:`observe` takes each new sample; it returns a :class:`ChangeEvent` when a change is
+    declared.  After an event the changed camera (or, for the arm, everything) is no longer
+    tested until :meth:`reset` gives a new calibration.
+    """
+
+    def __init__(self, model: PredictionModel, scales: Dict[str, float],
+                 settings: ChangeSettings = None):
+        self.model = model
+        self.scales = {n: max(float(scales.get(n, 1.0)), 1e-12) for n in model.cameras}
+        self.settings = (settings or ChangeSettings()).validate()
+        s = self.settings
+        self.threshold = threshold(s.reference, s.false_alarm)
+        self.cap = cap_of(s.reference)
+        #: camera -> [S, stamp of the first observation of the current climb]
+        self.windows = {n: [0.0, None] for n in model.cameras}
+        self.recent: deque = deque(maxlen=200)
+        self.paused = False
+        self.tested = 0
+        self.suspect: Optional[dict] = None
+
+    def observe(self, X0, uvs: Dict[str, np.ndarray], stamp_ns: int) -> Optional[ChangeEvent]:
+        """Test one new sample (arm point ``X0``, name -> uv); return an event or None."""
+        if self.paused or not self.model.cameras:
+            return None
+        uvs = {n: np.asarray(uv, float).reshape(2) for n, uv in uvs.items()
+               if n in self.model.cameras}
+        if not uvs:
+            return None
+        X0 = np.asarray(X0, float).reshape(3)
+        seen = _Seen(int(stamp_ns), X0, uvs)
+        self.recent.append(seen)
+        self.tested += 1
+        if self.suspect is not None:
+            return self._confirm(seen)
+        stats = statistics(self.model, X0, uvs)
+        fired = None
+        for name, d2 in stats.items():
+            w = self.windows[name]
+            g = min(d2 / self.scales[name], self.cap) - self.settings.reference
+            if w[0] + g > 0 and w[0] == 0.0:
+                w[1] = int(stamp_ns)
+            w[0] = max(0.0, w[0] + g)
+            if fired is None and w[0] > self.threshold:
+                fired = (name, w[1], w[0])
+        if fired is None:
+            return None
+        name, onset, stat = fired
+        since = [s for s in self.recent if s.stamp_ns >= onset]
+        kind, camera, evidence = self._attribute(since, name)
+        if kind == 'camera':
+            # Confirm before declaring: a moved camera's new views are explained by a new
+            # pose (and focal length); a burst of bad detections is not.
+            self.suspect = dict(camera=camera, onset=onset, statistic=stat, evidence=evidence,
+                                seen=[s for s in since if camera in s.uvs])
+            return self._confirm(None)
+        event = ChangeEvent(kind, camera, onset, int(stamp_ns), stat, self.threshold,
+                            len(since), evidence)
+        self._clear()
+        self.paused = True
+        return event
+
+    def _clear(self):
+        for w in self.windows.values():
+            w[0], w[1] = 0.0, None
+        self.recent.clear()
+        self.suspect = None
+
+    def _confirm(self, seen: Optional[_Seen]) -> Optional[ChangeEvent]:
+        """Collect the suspect camera's views; once there are enough, explain them or not."""
+        sus = self.suspect
+        camera = sus['camera']
+        if seen is not None and camera in seen.uvs:
+            sus['seen'].append(seen)
+        if len(sus['seen']) < CONFIRM_OBSERVATIONS + ONSET_SLACK:
+            return None
+        fit = explain_by_camera_change(self.model, camera, sus['seen'], self.scales,
+                                       self.settings.false_alarm)
+        # The CUSUM's climb may start on old views that happened to disagree: the change
+        # point is the split that explains the views best, the views before it by the old
+        # camera and those after by the refitted one (at least CONFIRM_OBSERVATIONS of them).
+        best, best_cost = 0, float(np.sum(fit.new_d2))
+        for k in range(1, len(sus['seen']) - CONFIRM_OBSERVATIONS + 1):
+            f = explain_by_camera_change(self.model, camera, sus['seen'][k:], self.scales,
+                                         self.settings.false_alarm)
+            cost = float(np.sum(fit.old_d2[:k]) + np.sum(f.new_d2))
+            if cost < best_cost:
+                best, best_cost = k, cost
+        if best > 0:
+            sus['seen'] = sus['seen'][best:]
+            sus['onset'] = sus['seen'][0].stamp_ns
+            fit = explain_by_camera_change(self.model, camera, sus['seen'], self.scales,
+                                           self.settings.false_alarm)
+        stamp = sus['seen'][-1].stamp_ns
+        evidence = dict(sus['evidence'])
+        evidence['unexplained after refitting the camera'] = fit.ratio
+        self._clear()
+        if fit.ratio <= 1.0:
+            event = ChangeEvent('camera', camera, sus['onset'], stamp, sus['statistic'],
+                                self.threshold, len(fit.used), evidence, fit)
+            self.model = PredictionModel(
+                {n: c for n, c in self.model.cameras.items() if n != camera},
+                {n: v for n, v in self.model.sigma_px.items() if n != camera},
+                self.model.arm_sigma)
+            self.windows.pop(camera, None)
+            return event
+        return ChangeEvent('disagreement', camera, sus['onset'], stamp, sus['statistic'],
+                           self.threshold, len(fit.used), evidence, fit)
+
+    def _agreement(self, seen: List[_Seen], leave_out=None, use_arm=True):
+        """chi^2 / its quantile at the false-alarm probability, over ``seen`` (nan: untestable)."""
+        total, dof = 0.0, 0
+        for s in seen:
+            uvs = {n: uv for n, uv in s.uvs.items() if n != leave_out}
+            f = fuse(self.model, s.X0, uvs, self.scales, use_arm=use_arm)
+            if f is None or f.dof <= 0:
+                continue
+            total += f.chi2
+            dof += f.dof
+        if dof == 0:
+            return float('nan')
+        return total / float(chi2.isf(self.settings.false_alarm, dof))
+
+    def _attribute(self, seen: List[_Seen], fired: str):
+        cams = sorted({n for s in seen for n in s.uvs})
+        evidence = {f'without {n}': self._agreement(seen, leave_out=n) for n in cams}
+        evidence['cameras without the arm'] = self._agreement(seen, use_arm=False)
+        ok = {n: evidence[f'without {n}'] for n in cams
+              if np.isfinite(evidence[f'without {n}']) and evidence[f'without {n}'] <= 1.0}
+        if ok:
+            return 'camera', min(ok, key=ok.get), evidence
+        free = evidence['cameras without the arm']
+        if np.isfinite(free) and free <= 1.0:
+            return 'arm', None, evidence
+        return 'unexplained', fired, evidence
+
+    def reset(self, model: PredictionModel, scales: Dict[str, float]):
+        """Start again on a new calibration."""
+        self.__init__(model, scales, self.settings)
