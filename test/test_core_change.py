@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from armcal_ros.core.change import (cap_of, ChangeMonitor, ChangeSettings, innovation, PredictionModel,
-                                    reference_scales, threshold)
+from armcal_ros.core.change import (cap_of, ChangeMonitor, ChangeSettings, innovation,
+                                    PredictionModel, reference_scales, threshold)
 from armcal_ros.sim.synthetic import make_problem
 
 PIXEL_SIGMA = 0.3
