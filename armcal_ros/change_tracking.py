@@ -9,8 +9,8 @@ calibration.  This module keeps what the engine needs around it:
 - the cameras being recalibrated: a camera that moved is withheld (its calibration no longer
   describes it) until it has ``recalibration_samples`` new observations and a solve that
   includes them has been accepted; it is then started from a PnP of its new observations with
-  its old intrinsics, and the accepted result says what changed (the pose by so many degrees and
-  millimetres, or the lens: a focal length outside 4 combined standard deviations);
+  its old intrinsics, and its new views, refitted against the calibration it left, say what
+  changed (the pose by so many degrees and millimetres, or the lens: the focal length);
 - the events, for /diagnostics, report.json and a restart (``changes.json`` beside the
   calibration).
 
@@ -23,18 +23,13 @@ from dataclasses import asdict, dataclass, field
 from typing import Dict, List, Optional
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from armcal_ros.core.change import (ARM_SIGMA_FLOOR, ChangeEvent, ChangeMonitor,
-                                    ChangeSettings, PredictionModel, reference_scales)
+                                    ChangeSettings, PredictionModel, reference_scales,
+                                    size_change, View)
 from armcal_ros.io.calib_files import atomic_write_text
 
 CHANGES_FILE = 'changes.json'
-#: A lens change is declared when a recalibrated camera's focal length moved by more than this
-#: many combined standard deviations (old and new): the published deviations are honest to
-#: within a factor of about two (docs/NOISE_MODELS.md), so 4 keeps a pose change whose focal
-#: length merely wandered from being called a lens change.
-LENS_CHANGE_SIGMAS = 4.0
 #: Samples of the calibration's own that calibrate the monitor's scale: the median of a few
 #: hundred is within a few per cent, and the cost stays a fraction of a second.
 REFERENCE_SAMPLES = 300
@@ -67,9 +62,16 @@ class ChangeRecord:
         if self.kind == 'disagreement':
             return (f'{self.camera}: views from t = {t:.1f} s disagreed with its calibration, '
                     'but no new pose explains them (bad detections?); nothing changed')
-        if self.kind == 'arm':
+        if self.kind == 'arm' and self.status == 'restarted':
             return (f'the arm or marker changed at t = {t:.1f} s (every camera disagreed with '
-                    f'the arm, not with each other): {self.retired} older observations retired')
+                    f'the arm, not with each other, twice in a row): {self.retired} older '
+                    'observations retired, samples restarted')
+        if self.kind == 'arm':
+            return (f'the cameras disagreed with the arm at t = {t:.1f} s, not with each other '
+                    '(a new tool or marker, a re-homed joint?); watching')
+        if self.kind == 'unexplained':
+            return (f'views from t = {t:.1f} s disagreed with the calibration and no single '
+                    f'change explains them (first seen by {self.camera}); watching')
         head = f'{self.camera} changed at t = {t:.1f} s'
         if self.status == 'recalibrating':
             return (f'{head}: recalibrating, {self.new_observations} of the observations needed '
@@ -97,16 +99,19 @@ class ChangeTracker:
         self.monitor: Optional[ChangeMonitor] = None
         self.records: List[ChangeRecord] = []
         self.epoch = 0
-        #: camera -> (its record, its last calibration before the change)
+        #: camera -> (its record, its last calibration before the change, the predictor the
+        #: change was found with)
         self.recalibrating: Dict[str, tuple] = {}
 
     # -- the predictor ---------------------------------------------------------------------
-    def build_monitor(self, calibration, arrays, arm_sigma) -> Optional[ChangeMonitor]:
+    def build_monitor(self, calibration, arrays, arm_sigma,
+                      parameter_covariance=None) -> Optional[ChangeMonitor]:
         """
         Return a monitor of an accepted calibration, scaled on the samples it was solved on.
 
-        The cameras being recalibrated are left out.  Built outside the engine's lock (the
-        scales take a fraction of a second); the engine swaps it in.
+        The cameras being recalibrated are left out; ``parameter_covariance`` maps cameras to
+        (their parameter names, covariance) from the adjustment.  Built outside the engine's
+        lock (the scales take a fraction of a second); the engine swaps it in.
         """
         if not self.enabled or calibration is None:
             return None
@@ -121,9 +126,16 @@ class ChangeTracker:
             cams[name], sig[name] = c.camera, float(s)
         if not cams:
             return None
-        model = PredictionModel(cams, sig, max(float(arm_sigma), ARM_SIGMA_FLOOR))
+        arm = max(float(arm_sigma), ARM_SIGMA_FLOOR)
         points, obs = per_point(arrays, limit=REFERENCE_SAMPLES)
-        return ChangeMonitor(model, reference_scales(model, points, obs), self.settings)
+        # The scale is calibrated on the samples the cameras were fitted to, whose residuals
+        # the fit has pulled in: there the parameters' uncertainty does not show, so it is
+        # left out of the scale and added for the new views only.
+        scales = reference_scales(PredictionModel(cams, sig, arm), points, obs)
+        model = PredictionModel(cams, sig, arm, {k: v for k, v in
+                                                 (parameter_covariance or {}).items()
+                                                 if k in cams})
+        return ChangeMonitor(model, scales, self.settings)
 
     def observe(self, sample) -> Optional[ChangeEvent]:
         """Test one new sample; return the event if a change is declared."""
@@ -137,18 +149,19 @@ class ChangeTracker:
     # -- events ----------------------------------------------------------------------------
     def declare(self, event: ChangeEvent, store, calibration) -> ChangeRecord:
         """Start a new epoch for ``event``: retire the old observations, note the camera."""
-        self.epoch += 1
         if event.kind == 'disagreement':
             # One camera's views disagree and no new pose explains them: bad detections, not
             # a change.  Reported; nothing is retired and no epoch starts.
-            self.epoch -= 1
             rec = ChangeRecord(event.kind, event.camera, self.epoch, event.onset_ns,
                                event.detected_ns, event.statistic, event.threshold,
                                event.samples, {k: float(v) for k, v in event.evidence.items()},
                                status='reported', what='views not explained by a change')
             self.records.append(rec)
             return rec
-        camera = event.camera if event.kind in ('camera', 'unexplained') else None
+        if event.kind in ('arm', 'unexplained'):
+            return self._arm_or_unexplained(event, store)
+        camera = event.camera
+        self.epoch += 1
         rec = ChangeRecord(event.kind, camera, self.epoch, event.onset_ns, event.detected_ns,
                            event.statistic, event.threshold, event.samples,
                            {k: float(v) for k, v in event.evidence.items()})
@@ -157,17 +170,41 @@ class ChangeTracker:
                 event.fit.translation_mm
             rec.focal_percent = event.fit.focal_percent
         rec.retired = store.retire(event.onset_ns, self.epoch, camera)
-        if camera is None:
-            rec.status, rec.what = 'reported', 'arm or marker'
-        else:
-            old = calibration.cameras.get(camera) if calibration is not None else None
-            self.recalibrating[camera] = (rec, old)
+        old = calibration.cameras.get(camera) if calibration is not None else None
+        self.recalibrating[camera] = (rec, old, event.model)
+        self.records.append(rec)
+        return rec
+
+    def _arm_or_unexplained(self, event, store):
+        """
+        Report an arm (or unexplained) disagreement; retire the samples when it repeats.
+
+        One alarm is reported only: a new tool or a re-homed joint shows again in the next
+        views, a passing disturbance does not.  A second one in a row (no other change between)
+        confirms it: every observation before the first one's onset is retired and the
+        samples start again, the cameras keeping their calibration meanwhile.
+        """
+        prev = self.records[-1] if self.records else None
+        rec = ChangeRecord(event.kind, event.camera if event.kind == 'unexplained' else None,
+                           self.epoch, event.onset_ns, event.detected_ns, event.statistic,
+                           event.threshold, event.samples,
+                           {k: float(v) for k, v in event.evidence.items()},
+                           status='reported', what='arm or marker (unconfirmed)'
+                           if event.kind == 'arm' else 'not explained by any one change')
+        if event.kind == 'arm' and prev is not None and prev.kind == 'arm' and \
+                prev.status == 'reported':
+            self.epoch += 1
+            rec.epoch = self.epoch
+            rec.onset_ns = prev.onset_ns
+            rec.retired = store.retire(prev.onset_ns, self.epoch, None)
+            rec.status, rec.what = 'restarted', 'arm or marker'
+            prev.status = 'confirmed'
         self.records.append(rec)
         return rec
 
     def count_new(self, arrays):
         """Update each recalibrating camera's count of new observations from ``arrays``."""
-        for name, (rec, _) in self.recalibrating.items():
+        for name, (rec, *_) in self.recalibrating.items():
             if name in arrays.camera_names:
                 j = arrays.camera_names.index(name)
                 rec.new_observations = int(np.count_nonzero(arrays.camera_index == j))
@@ -181,25 +218,33 @@ class ChangeTracker:
         """Return the cameras withheld until they have enough new observations."""
         return [n for n in self.recalibrating if not self.ready(n)]
 
-    def accepted(self, calibration):
-        """After an accepted solve: close the recalibrations it contains; say what changed."""
+    def accepted(self, calibration, arrays):
+        """
+        After an accepted solve: close the recalibrations it contains; say what changed.
+
+        A changed camera's new views (in ``arrays``) are refitted against the predictor the
+        change was found with (:func:`~armcal_ros.core.change.size_change`): the size and the
+        kind (pose or lens) are then measured in the old calibration's own frame, free of the
+        drift of the whole solution between the two solves.
+        """
         for name in list(self.recalibrating):
             if name not in calibration.cameras or not self.ready(name):
                 continue
-            rec, old = self.recalibrating.pop(name)
+            rec, old, model = self.recalibrating.pop(name)
             rec.status = 'recalibrated'
-            new = calibration.cameras[name]
-            if old is None:
+            if model is None or name not in model.cameras:
                 rec.what = 'camera'
                 continue
-            a, b = old.camera, new.camera
-            rec.rotation_deg = float(np.degrees(np.linalg.norm(
-                Rotation.from_matrix(b.rotation @ a.rotation.T).as_rotvec())))
-            rec.translation_mm = float(1e3 * np.linalg.norm(b.center - a.center))
-            rec.focal_percent = float(100.0 * (b.fx / a.fx - 1.0))
-            sf = np.hypot(old.std.get('fx', 0.0), new.std.get('fx', 0.0))
-            lens = sf > 0 and abs(b.fx - a.fx) > LENS_CHANGE_SIGMAS * sf
-            rec.what = 'lens' if lens else 'pose'
+            points, obs = per_point(arrays)
+            views = [View(0, X, uvs) for X, uvs in zip(points, obs) if name in uvs]
+            try:
+                rec.what, fit = size_change(model, name, views,
+                                            false_alarm=self.settings.false_alarm)
+            except (np.linalg.LinAlgError, ValueError):
+                rec.what = 'camera'
+                continue
+            rec.rotation_deg, rec.translation_mm = fit.rotation_deg, fit.translation_mm
+            rec.focal_percent = fit.focal_percent
 
     def withheld(self):
         """Return the cameras whose published calibration no longer holds."""
@@ -231,7 +276,7 @@ class ChangeTracker:
         self.records, self.epoch = records, epoch
         by_camera = {r.camera: r for r in records if r.camera is not None}
         self.recalibrating = {
-            n: (by_camera[n], None if calibration is None else calibration.cameras.get(n))
+            n: (by_camera[n], None if calibration is None else calibration.cameras.get(n), None)
             for n in waiting if n in by_camera}
         return len(records)
 

@@ -341,6 +341,26 @@ class CalibrationEngine:
                                f'(min_new_samples {self.settings.min_new_samples})')
             return True, 'due'
 
+    def solve_if_grown(self, growth=2.0):
+        """
+        Solve now if the samples have grown by ``growth`` since the last solve (offline use).
+
+        Reading a recording, the samples arrive faster than a live node would solve them; this
+        solves at ``min_samples`` and whenever the store has grown by the factor since (and as
+        soon as a changed camera has its new observations), so that change detection follows
+        the recording in time order as the node would, at a logarithmic number of solves.
+        Returns the outcome, or None if no solve was due.
+        """
+        with self._lock:
+            n = len(self.store)
+            last = self._samples_at_last_solve if self.n_solves else 0
+            ready = self._recalibration_ready()
+        if n < self.settings.min_samples or not self.image_sizes:
+            return None
+        if last and n < growth * last and not ready:
+            return None
+        return self.solve()
+
     def _recalibration_ready(self):
         """Return True if a changed camera reached its new observations since the last solve."""
         waiting = self.changes.waiting()
@@ -563,7 +583,7 @@ class CalibrationEngine:
         fails (the lens changed too much to explain them), the camera starts from a DLT.
         """
         initial = dict(initial)
-        for name, (rec, old) in restarted.items():
+        for name, (rec, old, _) in restarted.items():
             initial.pop(name, None)
             if old is None or name not in arrays.camera_names:
                 continue
@@ -584,11 +604,23 @@ class CalibrationEngine:
         if adj is not None and adj.points is not None and len(adj.points) == len(points):
             arm = float(np.sqrt(np.mean(np.sum((adj.points - points) ** 2, axis=1)) / 3.0))
         cal.hyperparameters['arm_sigma_mm'] = 1e3 * arm
+        blocks = {}
+        if adj is not None and adj.covariance is not None:
+            names = list(adj.parameter_names)
+            for cam in cal.cameras:
+                idx = [i for i, p in enumerate(names) if p.startswith(cam + '/')]
+                if idx and np.all(np.isfinite(adj.covariance[np.ix_(idx, idx)])):
+                    blocks[cam] = ([names[i][len(cam) + 1:] for i in idx],
+                                   adj.covariance[np.ix_(idx, idx)])
         with self._lock:
-            self.changes.accepted(cal)
-        monitor = self.changes.build_monitor(cal, arrays, arm)
+            self.changes.accepted(cal, arrays)
+        monitor = self.changes.build_monitor(cal, arrays, arm, blocks)
         with self._lock:
-            self.changes.monitor = monitor
+            old = self.changes.monitor
+            # A solve that ran while a camera was drifting off its prediction has absorbed
+            # part of the change: keep testing against the calibration that saw it coming.
+            if old is None or not old.busy:
+                self.changes.monitor = monitor
 
     def _reference_for(self, specs, points, obs, initial, kin, solver, n, arrays, sel):
         """

@@ -116,7 +116,8 @@ def test_a_marker_that_moved_on_the_arm_is_told_from_a_camera_that_moved():
             break
     assert event is not None and k < change_at + 10
     assert event.kind == 'arm', event.evidence
-    assert mon.paused
+    # It keeps watching: a second alarm in a row confirms an arm change (change_tracking).
+    assert not mon.paused and not mon.busy
 
 
 def test_settings_are_checked_with_their_names():

@@ -12,7 +12,11 @@ point
 
 (Gauss-Newton from X^), with H its information matrix, gives
 
-    r_c = uv_c - pi_c(X~),    S_c = s_c^2 I + J_c H^-1 J_c^T,    d_c^2 = r_c^T S_c^-1 r_c.
+    r_c = uv_c - pi_c(X~),   S_c = s_c^2 I + G_c C_c G_c^T + J_c H^-1 J_c^T,
+    d_c^2 = r_c^T S_c^-1 r_c,
+
+with G_c C_c G_c^T what camera c's own parameter covariance puts into the prediction (a young
+calibration extrapolates widely; the other cameras' covariances enter H the same way).
 
 Leaving camera c out makes r_c independent of c's own error; the other cameras make it
 independent of the arm's error along their rays (with three cameras the arm hardly matters).
@@ -160,6 +164,10 @@ class PredictionModel:
     cameras: Dict[str, Camera]
     sigma_px: Dict[str, float]
     arm_sigma: float
+    #: Per camera (its parameters' names - fx, fy, cx, cy, the fitted distortion terms, wx, wy,
+    #: wz, tx, ty, tz - and their covariance): what the calibration does not know adds
+    #: J_c C J_c^T to each prediction.  Cameras without one are taken as exact.
+    parameter_covariance: Dict[str, tuple] = field(default_factory=dict)
 
     def __post_init__(self):
         for name, s in self.sigma_px.items():
@@ -167,6 +175,36 @@ class PredictionModel:
                 raise ValueError(f'sigma_px[{name!r}] must be finite and > 0, got {s}')
         if not (np.isfinite(self.arm_sigma) and self.arm_sigma > 0):
             raise ValueError(f'arm_sigma must be finite and > 0 (m), got {self.arm_sigma}')
+
+
+_DIST = ('k1', 'k2', 'p1', 'p2', 'k3')
+
+
+def predict(model: PredictionModel, name, X, scale=1.0):
+    """
+    Return camera ``name``'s prediction of point X (3,): (uv (2,), d uv / dX (2, 3), Sigma (2, 2)).
+
+    Sigma = scale s^2 I + J_c C J_c^T: the image noise (times ``scale``, the k^2 of the module
+    docstring) and the calibration's own uncertainty through the camera's parameter Jacobian.
+    """
+    cam = model.cameras[name]
+    pj = project_with_jacobians(cam.intrinsics(), cam.dist, cam.rotation, cam.translation,
+                                np.asarray(X, float).reshape(1, 3))
+    Sigma = scale * model.sigma_px[name] ** 2 * np.eye(2)
+    got = model.parameter_covariance.get(name)
+    if got is not None:
+        names, C = got
+        cols = []
+        for p in names:
+            if p in ('fx', 'fy', 'cx', 'cy'):
+                cols.append(pj.d_intr[0][:, ('fx', 'fy', 'cx', 'cy').index(p)])
+            elif p in _DIST:
+                cols.append(pj.d_dist[0][:, _DIST.index(p)])
+            else:
+                cols.append(pj.d_pose[0][:, ('wx', 'wy', 'wz', 'tx', 'ty', 'tz').index(p)])
+        Jc = np.column_stack(cols)
+        Sigma = Sigma + Jc @ C @ Jc.T
+    return pj.uv[0], pj.d_point[0], Sigma, pj.depth[0]
 
 
 @dataclass
@@ -184,8 +222,9 @@ def fuse(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=None,
     """
     Fuse the arm's point ``X0`` (3,) with the cameras' points ``uvs`` (name -> (2,)).
 
-    Minimises |X - X0|^2 / s_arm^2 (if ``use_arm``) + sum_o |uv_o - pi_o(X)|^2 / (k_o^2 s_o^2)
-    by Gauss-Newton; ``scales`` maps cameras to k_o^2 (default 1).  The chi^2 is the whitened
+    Minimises |X - X0|^2 / s_arm^2 (if ``use_arm``) + sum_o r_o^T Sigma_o^-1 r_o, r_o = uv_o -
+    pi_o(X), Sigma_o from :func:`predict`, by Gauss-Newton; ``scales`` maps cameras to k_o^2
+    (default 1).  The chi^2 is the whitened
     residual sum at the solution, with 2 m + 3 - 3 degrees of freedom (m cameras) with the arm,
     2 m - 3 without.  None when the cameras alone cannot fix the point (fewer than two).
     """
@@ -195,33 +234,31 @@ def fuse(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=None,
         return None
     w_arm = 1.0 / model.arm_sigma ** 2 if use_arm else 0.0
     X = X0.copy()
-    H = np.eye(3) * w_arm
-    for _ in range(FUSION_ITERATIONS):
-        H = np.eye(3) * w_arm
-        g = w_arm * (X0 - X)
+
+    def terms(X):
+        out = []
         for n in names:
-            cam = model.cameras[n]
-            pj = project_with_jacobians(cam.intrinsics(), cam.dist, cam.rotation,
-                                        cam.translation, X[None])
-            w = 1.0 / (model.sigma_px[n] ** 2 * (1.0 if scales is None else scales.get(n, 1.0)))
-            J = pj.d_point[0]
-            H += w * J.T @ J
-            g += w * J.T @ (np.asarray(uvs[n], float).reshape(2) - pj.uv[0])
-        try:
-            X = X + np.linalg.solve(H, g)
-        except np.linalg.LinAlgError:
-            return None
-    chi = w_arm * float(np.sum((X - X0) ** 2))
-    for n in names:
-        w = 1.0 / (model.sigma_px[n] ** 2 * (1.0 if scales is None else scales.get(n, 1.0)))
-        chi += w * float(np.sum((np.asarray(uvs[n], float).reshape(2) -
-                                 model.cameras[n].project(X[None])[0]) ** 2))
-    dof = 2 * len(names) - (0 if use_arm else 3)
+            uv, J, Sigma, _ = predict(model, n, X, 1.0 if scales is None else scales.get(n, 1.0))
+            out.append((np.asarray(uvs[n], float).reshape(2) - uv, J, np.linalg.inv(Sigma)))
+        return out
+
     try:
+        for _ in range(FUSION_ITERATIONS):
+            H = np.eye(3) * w_arm
+            g = w_arm * (X0 - X)
+            for r, J, W in terms(X):
+                H += J.T @ W @ J
+                g += J.T @ W @ r
+            X = X + np.linalg.solve(H, g)
+        H = np.eye(3) * w_arm
+        chi = w_arm * float(np.sum((X - X0) ** 2))
+        for r, J, W in terms(X):
+            H += J.T @ W @ J
+            chi += float(r @ W @ r)
         cov = np.linalg.inv(H)
     except np.linalg.LinAlgError:
         return None
-    return Fusion(X, cov, chi, dof)
+    return Fusion(X, cov, chi, 2 * len(names) - (0 if use_arm else 3))
 
 
 def innovation(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], camera):
@@ -236,14 +273,11 @@ def innovation(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], camera):
     f = fuse(model, X0, others)
     if f is None:
         return None
-    cam = model.cameras[camera]
-    pj = project_with_jacobians(cam.intrinsics(), cam.dist, cam.rotation, cam.translation,
-                                f.X[None])
-    if pj.depth[0] <= 0:
+    uv, J, Sigma, depth = predict(model, camera, f.X)
+    if depth <= 0:
         return None
-    J = pj.d_point[0]
-    r = np.asarray(uvs[camera], float).reshape(2) - pj.uv[0]
-    S = model.sigma_px[camera] ** 2 * np.eye(2) + J @ f.cov @ J.T
+    r = np.asarray(uvs[camera], float).reshape(2) - uv
+    S = Sigma + J @ f.cov @ J.T
     return r, S, float(r @ np.linalg.solve(S, r))
 
 
@@ -294,10 +328,15 @@ class ChangeEvent:
     samples: int
     evidence: Dict[str, float] = field(default_factory=dict)
     fit: Optional['CameraChangeFit'] = None
+    #: The predictor the change was found with (the changed camera's old calibration among
+    #: the others): what the new views are later compared with, in the same frame.
+    model: Optional['PredictionModel'] = None
 
 
 @dataclass
-class _Seen:
+class View:
+    """One sample as the monitor sees it: stamp, the arm's point, camera name -> uv."""
+
     stamp_ns: int
     X0: np.ndarray
     uvs: Dict[str, np.ndarray]
@@ -324,14 +363,15 @@ class CameraChangeFit:
 
 
 def explain_by_camera_change(model: PredictionModel, camera, seen, scales=None,
-                             false_alarm=1e-6, iterations=8) -> CameraChangeFit:
+                             false_alarm=1e-6, iterations=8, fit_focal=True) -> CameraChangeFit:
     """
     Refit ``camera``'s pose and focal length to its views in ``seen``; say if that explains them.
 
     Each view's point is fused from the arm and the other cameras (:func:`fuse`), with
     covariance P_i; the residual r_i = uv_i - pi(R(w) , t + dt, s f; X_i) is whitened by
     S_i = k^2 s^2 I + J_i P_i J_i^T, and Gauss-Newton finds (w, dt, s) from the old camera.
-    The 2 n - 7 degrees of freedom left judge the fit.
+    The 2 n - 7 degrees of freedom left judge the fit; without ``fit_focal`` the focal length
+    stays (2 n - 6).
     """
     cam0 = model.cameras[camera]
     k2 = 1.0 if scales is None else scales.get(camera, 1.0)
@@ -362,7 +402,11 @@ def explain_by_camera_change(model: PredictionModel, camera, seen, scales=None,
         scale = 1.0
         for _ in range(iterations):
             r, J = whitened(cam, scale)
+            if not fit_focal:
+                J = J[:, :6]
             step = np.linalg.lstsq(J, r, rcond=None)[0]
+            if not fit_focal:
+                step = np.append(step, 0.0)
             cam.apply_pose_increment(step[:3], step[3:6])
             scale += step[6]
             if np.max(np.abs(step[:6])) < 1e-10 and abs(step[6]) < 1e-12:
@@ -394,7 +438,7 @@ def explain_by_camera_change(model: PredictionModel, camera, seen, scales=None,
                                np.full(n, np.inf))
     cam, scale, r = min(fits, key=lambda f: float(f[2] @ f[2]) if np.all(np.isfinite(f[2]))
                         else np.inf)
-    dof = 2 * n - 7
+    dof = 2 * n - (7 if fit_focal else 6)
     ratio = (float(r @ r) / float(chi2.isf(false_alarm, dof)) if dof > 0 else float('nan'))
     angle = np.linalg.norm(Rotation.from_matrix(cam.rotation @ cam0.rotation.T).as_rotvec())
     return CameraChangeFit(float(np.degrees(angle)),
@@ -404,13 +448,31 @@ def explain_by_camera_change(model: PredictionModel, camera, seen, scales=None,
                            np.sum(r.reshape(-1, 2) ** 2, axis=1))
 
 
+def size_change(model: PredictionModel, camera, seen, scales=None, false_alarm=1e-6):
+    """
+    Return (what, fit) for a changed camera's new views ``seen`` against its old calibration.
+
+    Both refits of :func:`explain_by_camera_change` are made: with the focal length free and
+    held.  The lens changed ('lens') if freeing it lowers chi^2 by more than the chi^2_1
+    quantile at ``false_alarm``; otherwise 'pose'.  A focus change and a move along the
+    optical axis look alike over a shallow workspace: then it is called 'pose', the size
+    being what a pose alone would have to change by.
+    """
+    free = explain_by_camera_change(model, camera, seen, scales, false_alarm)
+    held = explain_by_camera_change(model, camera, seen, scales, false_alarm, fit_focal=False)
+    gain = float(np.sum(held.new_d2) - np.sum(free.new_d2))
+    if gain > float(chi2.isf(false_alarm, 1)):
+        return 'lens', free
+    return 'pose', held
+
+
 class ChangeMonitor:
     """
     The sequential test of every camera against a :class:`PredictionModel`.
 
     :meth:`observe` takes each new sample; it returns a :class:`ChangeEvent` when a change is
-    declared.  After an event the changed camera (or, for the arm, everything) is no longer
-    tested until :meth:`reset` gives a new calibration.
+    declared.  After a camera's change it is no longer tested until :meth:`reset` gives a new
+    calibration; the others go on (an arm change is judged by the caller from repeated events).
     """
 
     def __init__(self, model: PredictionModel, scales: Dict[str, float],
@@ -437,7 +499,7 @@ class ChangeMonitor:
         if not uvs:
             return None
         X0 = np.asarray(X0, float).reshape(3)
-        seen = _Seen(int(stamp_ns), X0, uvs)
+        seen = View(int(stamp_ns), X0, uvs)
         self.recent.append(seen)
         self.tested += 1
         if self.suspect is not None:
@@ -466,8 +528,13 @@ class ChangeMonitor:
         event = ChangeEvent(kind, camera, onset, int(stamp_ns), stat, self.threshold,
                             len(since), evidence)
         self._clear()
-        self.paused = True
         return event
+
+    @property
+    def busy(self):
+        """Return True while a camera's statistics climb or a suspect is being judged."""
+        return self.suspect is not None or any(w[0] > self.settings.reference
+                                               for w in self.windows.values())
 
     def _clear(self):
         for w in self.windows.values():
@@ -475,7 +542,7 @@ class ChangeMonitor:
         self.recent.clear()
         self.suspect = None
 
-    def _confirm(self, seen: Optional[_Seen]) -> Optional[ChangeEvent]:
+    def _confirm(self, seen: Optional[View]) -> Optional[ChangeEvent]:
         """Collect the suspect camera's views; once there are enough, explain them or not."""
         sus = self.suspect
         camera = sus['camera']
@@ -506,17 +573,18 @@ class ChangeMonitor:
         self._clear()
         if fit.ratio <= 1.0:
             event = ChangeEvent('camera', camera, sus['onset'], stamp, sus['statistic'],
-                                self.threshold, len(fit.used), evidence, fit)
+                                self.threshold, len(fit.used), evidence, fit, self.model)
+            m = self.model
             self.model = PredictionModel(
-                {n: c for n, c in self.model.cameras.items() if n != camera},
-                {n: v for n, v in self.model.sigma_px.items() if n != camera},
-                self.model.arm_sigma)
+                {n: c for n, c in m.cameras.items() if n != camera},
+                {n: v for n, v in m.sigma_px.items() if n != camera}, m.arm_sigma,
+                {n: v for n, v in m.parameter_covariance.items() if n != camera})
             self.windows.pop(camera, None)
             return event
         return ChangeEvent('disagreement', camera, sus['onset'], stamp, sus['statistic'],
                            self.threshold, len(fit.used), evidence, fit)
 
-    def _agreement(self, seen: List[_Seen], leave_out=None, use_arm=True):
+    def _agreement(self, seen: List[View], leave_out=None, use_arm=True):
         """chi^2 / its quantile at the false-alarm probability, over ``seen`` (nan: untestable)."""
         total, dof = 0.0, 0
         for s in seen:
@@ -530,7 +598,7 @@ class ChangeMonitor:
             return float('nan')
         return total / float(chi2.isf(self.settings.false_alarm, dof))
 
-    def _attribute(self, seen: List[_Seen], fired: str):
+    def _attribute(self, seen: List[View], fired: str):
         cams = sorted({n for s in seen for n in s.uvs})
         evidence = {f'without {n}': self._agreement(seen, leave_out=n) for n in cams}
         evidence['cameras without the arm'] = self._agreement(seen, use_arm=False)
