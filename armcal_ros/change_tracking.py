@@ -99,6 +99,8 @@ class ChangeTracker:
         self.monitor: Optional[ChangeMonitor] = None
         self.records: List[ChangeRecord] = []
         self.epoch = 0
+        #: epoch -> the calibration in force when it ended (written under DIR/epochs/)
+        self.epoch_calibrations: Dict[int, object] = {}
         #: camera -> (its record, its last calibration before the change, the predictor the
         #: change was found with)
         self.recalibrating: Dict[str, tuple] = {}
@@ -159,8 +161,10 @@ class ChangeTracker:
             self.records.append(rec)
             return rec
         if event.kind in ('arm', 'unexplained'):
-            return self._arm_or_unexplained(event, store)
+            return self._arm_or_unexplained(event, store, calibration)
         camera = event.camera
+        if calibration is not None:
+            self.epoch_calibrations[self.epoch] = calibration
         self.epoch += 1
         rec = ChangeRecord(event.kind, camera, self.epoch, event.onset_ns, event.detected_ns,
                            event.statistic, event.threshold, event.samples,
@@ -175,7 +179,7 @@ class ChangeTracker:
         self.records.append(rec)
         return rec
 
-    def _arm_or_unexplained(self, event, store):
+    def _arm_or_unexplained(self, event, store, calibration):
         """
         Report an arm (or unexplained) disagreement; retire the samples when it repeats.
 
@@ -193,6 +197,8 @@ class ChangeTracker:
                            if event.kind == 'arm' else 'not explained by any one change')
         if event.kind == 'arm' and prev is not None and prev.kind == 'arm' and \
                 prev.status == 'reported':
+            if calibration is not None:
+                self.epoch_calibrations[self.epoch] = calibration
             self.epoch += 1
             rec.epoch = self.epoch
             rec.onset_ns = prev.onset_ns

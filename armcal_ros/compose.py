@@ -13,6 +13,7 @@ from typing import Callable, Optional, Tuple
 
 import numpy as np
 
+from armcal_ros.core.change import ChangeSettings
 from armcal_ros.core.kinematic_prior import KinematicData, kinematic_sigmas
 from armcal_ros.core.priors import KINEMATIC_MODELS
 from armcal_ros.core.target import optional_pose
@@ -137,7 +138,11 @@ def engine_settings(settings: Settings, board: Optional[BoardTarget] = None) -> 
                           base_frame=robot.marker_link if eih else robot.base_frame,
                           board=board,
                           marker_link=robot.base_frame if eih else robot.marker_link,
-                          eye_in_hand=eih, point_place_guess=guess).validate()
+                          eye_in_hand=eih, point_place_guess=guess,
+                          detect_changes=s.detect_changes,
+                          change=ChangeSettings(false_alarm=s.change_false_alarm),
+                          recalibration_samples=s.recalibration_samples,
+                          max_sample_age_s=s.max_sample_age_s).validate()
 
 
 def _place_by_kinematics(settings: Settings) -> bool:

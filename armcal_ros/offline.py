@@ -13,13 +13,16 @@ A camera topic that is missing or empty is reported and the other cameras are st
 a message that cannot be deserialised is counted and skipped.
 """
 
+import copy
 import json
+import math
 import os
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Callable, Dict, Iterator, List, Optional
 
+from armcal_ros.change_tracking import ChangeTracker
 from armcal_ros.compose import build_engine, build_pipeline
 from armcal_ros.core.target import pose_vector
 from armcal_ros.engine import SolveOutcome
@@ -31,6 +34,7 @@ from armcal_ros.io.calib_files import atomic_write_text
 from armcal_ros.io.folder_import import capture_stamp, POSE_MARGIN_NS
 from armcal_ros.io.message_fields import camera_from_camera_info, pose_from_msg, stamp_ns
 from armcal_ros.io.rct_import import is_rct_folder, load_rct_folder, RctFormatError
+from armcal_ros.io.results_files import write_calibration
 from armcal_ros.robot.kinematics import KinematicChain
 from armcal_ros.settings import load_settings, Settings, with_given_intrinsics
 
@@ -90,6 +94,9 @@ class FrontEnd:
     time_s: float
     source: Dict = field(default_factory=dict)
     intrinsics: Dict = field(default_factory=dict)
+    #: What change detection found reading the recording in time order (None: not run).
+    changes: Optional[ChangeTracker] = None
+    monitor_solves: int = 0
 
 
 @dataclass
@@ -237,22 +244,49 @@ def collect_samples(source, settings: Settings, progress: Callable[[int, int], N
                               pose_input=rec.poses_given or None)
     except ValueError as exc:
         raise CalibrateError(str(exc)) from exc
-    collector, store = pipe.collector, pipe.engine.store
-    n = 0
+    collector, engine = pipe.collector, pipe.engine
+    store = engine.store
+    follow = engine.changes.enabled
+    n, solves = 0, 0
     added = {'added': 0, 'merged': 0, 'replaced': 0, 'dropped': 0}
+
+    def add(sample):
+        nonlocal solves
+        if not follow:
+            added[store.add(sample).value] += 1
+            return
+        # In time order, as the node would: each sample is tested against the calibration
+        # of the samples before it, solved as they double (CalibrationEngine.solve_if_grown).
+        added[engine.add_sample(sample).value] += 1
+        for cam, (w, h) in collector.image_sizes.items():
+            if cam in engine.settings.camera_names:
+                engine.set_image_size(cam, w, h)
+        if engine.solve_if_grown() is not None:
+            solves += 1
+
     for event in rec.events():
         n += 1
         if progress and n % 500 == 0:
             progress(n, rec.total)
         for s in feed(collector, event):
-            added[store.add(s).value] += 1
+            add(s)
     for s in collector.flush():
-        added[store.add(s).value] += 1
+        add(s)
     if progress:
         progress(rec.total, rec.total)
-    return FrontEnd(pipe.chain, pipe.engine.settings.board, store, dict(collector.image_sizes),
+    for r in engine.changes.records:
+        if log:
+            log(r.summary(_first_stamp(store)))
+    return FrontEnd(pipe.chain, engine.settings.board, store, dict(collector.image_sizes),
                     dict(collector.counts), rec.warnings, added, n, time.perf_counter() - t0,
-                    rec.info, rec.intrinsics)
+                    rec.info, rec.intrinsics, engine.changes if follow else None, solves)
+
+
+def _first_stamp(store):
+    """Return the earliest observation stamp in ``store`` (retired ones included), or 0."""
+    stamps = [o.stamp_ns for smp in store.samples for o in smp.observations.values()]
+    stamps += [o.stamp_ns for _, smp in store.retired for o in smp.observations.values()]
+    return min(stamps) if stamps else 0
 
 
 def solve_and_write(front: FrontEnd, settings: Settings, output_dir) -> OfflineResult:
@@ -267,6 +301,9 @@ def solve_and_write(front: FrontEnd, settings: Settings, output_dir) -> OfflineR
     except ValueError as exc:
         raise CalibrateError(str(exc)) from exc
     engine.store = front.store
+    if front.changes is not None:
+        engine.changes = copy.deepcopy(front.changes)
+        engine.changes.monitor = None
     for cam, (w, h) in front.image_sizes.items():
         engine.set_image_size(cam, w, h)
     outcome = engine.solve(force=True)
@@ -277,6 +314,9 @@ def solve_and_write(front: FrontEnd, settings: Settings, output_dir) -> OfflineR
         raise CalibrateError(f'calibration failed: {outcome.reason}')
     os.makedirs(output_dir, exist_ok=True)
     files = engine.save(output_dir)
+    for epoch, cal in sorted(engine.changes.epoch_calibrations.items()):
+        files += [str(f) for f in write_calibration(
+            os.path.join(output_dir, 'epochs', f'epoch_{epoch}'), cal, engine.settings.base_frame)]
     path = os.path.join(output_dir, 'report.json')
     atomic_write_text(path, json.dumps(report, indent=1))
     files.append(path)
@@ -329,7 +369,27 @@ def make_report(settings: Settings, engine, outcome, front: FrontEnd, timings):
         accepted=bool(outcome.accepted), message=outcome.reason,
         n_samples=len(engine.store), samples=front.added, cameras=cams,
         front_end=dict(front.counts), warnings=front.warnings, timings=timings,
-        stages=[list(s) for s in (outcome.result.stages if outcome.result else [])])
+        stages=[list(s) for s in (outcome.result.stages if outcome.result else [])],
+        changes=_changes_report(engine, front))
+
+
+def _changes_report(engine, front):
+    """Return the report's account of change detection (None when it was off)."""
+    if front.changes is None:
+        return None
+    start = _first_stamp(front.store)
+    return dict(
+        epochs=engine.changes.epoch + 1, solves_while_reading=front.monitor_solves,
+        withheld=engine.withheld(),
+        events=[dict(_json_safe_record(r), summary=r.summary(start),
+                     onset_s=(r.onset_ns - start) * 1e-9,
+                     detected_s=(r.detected_ns - start) * 1e-9)
+                for r in engine.changes.records])
+
+
+def _json_safe_record(r):
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+            for k, v in asdict(r).items()}
 
 
 def format_table(report):
@@ -357,6 +417,12 @@ def format_table(report):
                      f'{c["rms_px"]:7.3f} {c.get("workspace_error_mm") or float("nan"):7.2f}')
         lines.append(f'{"  +/-":<10} {s["fx"]:9.2f} {s["fy"]:9.2f} {s["cx"]:8.2f} '
                      f'{s["cy"]:8.2f} {s.get("k1", 0.0):8.4f}')
+    changes = report.get('changes') or {}
+    for e in changes.get('events', []):
+        lines.append(f'change: {e["summary"]}')
+    for name in changes.get('withheld', []):
+        lines.append(f'{name:<10} withheld: it changed and has too few new views to be '
+                     'recalibrated (recalibration_samples)')
     t = report['timings']
     lines.append(f'front end {t["front_end_s"]:.1f} s, solve {t["solve_s"]:.1f} s')
     return '\n'.join(lines)
@@ -412,5 +478,6 @@ def run(args):
         print(f'T_{where}_target (x y z qx qy qz qw): ' +
               ' '.join(f'{v:.5f}' for v in tgt['T_link_target']) +
               (' (estimated)' if tgt['estimated'] else ' (given)'))
-    print(f'wrote {", ".join(os.path.basename(f) for f in res.files)} to {args.output}')
+    names = ', '.join(os.path.relpath(f, args.output) for f in res.files)
+    print(f'wrote {names} to {args.output}')
     return 0

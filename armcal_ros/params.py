@@ -164,6 +164,21 @@ PARAMS = [
           lambda v: None if v >= 10 else 'must be >= 10', minimum=10),
     Param('min_new_samples', 'int', 5, 'new samples needed before a re-solve',
           lambda v: None if v >= 0 else 'must be >= 0', minimum=0),
+    Param('detect_changes', 'bool', True,
+          'test every new sample against the calibration; a camera that moved or changed its '
+          'lens starts a new epoch (its older views retired) and is recalibrated; an arm or '
+          'marker change is reported (README, "When a camera moves")'),
+    Param('change_false_alarm', 'double', 1e-6,
+          'false alarms per view of a camera the change test allows (default: one per million '
+          'views; at most 1e-5, above which two disagreeing views could raise an alarm)',
+          lambda v: None if 0 < v <= 1e-5 else 'must be in (0, 1e-5]', minimum=0.0),
+    Param('recalibration_samples', 'int', 20,
+          'new views a changed camera needs before it is solved and published again',
+          lambda v: None if v >= 6 else 'must be >= 6 (a camera has 6 pose parameters)',
+          minimum=6),
+    Param('max_sample_age', 'double', 0.0,
+          'forgetting for slow drift: views older than this (s, before the newest) are '
+          'retired before each solve; 0 keeps every view', _nonneg, minimum=0.0),
     Param('sphere_min_radius_px', 'double', 1.5, 'smallest sphere image radius, pixels',
           _positive, minimum=0.0),
     Param('sphere_max_radius_px', 'double', 40.0, 'largest sphere image radius, pixels',

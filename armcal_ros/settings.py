@@ -21,7 +21,8 @@ part           parameters
 ``prior``      noise_model, point_sigma, bias_sigma, coherence_length, kernel
 ``solver``     pixel_sigma, free_distortion, robust_loss(_scale), outlier_gate_sigmas, and the
                intrinsics read from intrinsics_files
-``schedule``   min_samples, solve_period, min_new_samples
+``schedule``   min_samples, solve_period, min_new_samples, detect_changes, change_false_alarm,
+               recalibration_samples, max_sample_age
 ``outputs``    output_dir, publish_tf, set_camera_info_services, resume
 ``intrinsics`` intrinsics_mode, intrinsics_sigma_px, intrinsics_sigma_dist, the CameraInfo
                topics of the given cameras without a file
@@ -191,6 +192,10 @@ class ScheduleSettings:
     min_samples: int = 20
     solve_period_s: float = 10.0
     min_new_samples: int = 5
+    detect_changes: bool = True
+    change_false_alarm: float = 1e-6
+    recalibration_samples: int = 20
+    max_sample_age_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -354,7 +359,9 @@ def settings_from_values(values: Dict[str, Any], require_robot_model=True,
         store=StoreSettings(v['max_samples'], v['min_sample_spacing']),
         prior=prior_settings(v),
         solver=solver_settings(v),
-        schedule=ScheduleSettings(v['min_samples'], v['solve_period'], v['min_new_samples']),
+        schedule=ScheduleSettings(v['min_samples'], v['solve_period'], v['min_new_samples'],
+                                  v['detect_changes'], v['change_false_alarm'],
+                                  v['recalibration_samples'], v['max_sample_age']),
         outputs=OutputSettings(v['output_dir'] or default_output_dir(node_name), v['publish_tf'],
                                tuple(v['set_camera_info_services']), v['resume']),
         intrinsics=intrinsics_settings(v))

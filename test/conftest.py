@@ -55,3 +55,18 @@ def board_joint_bag(tmp_path_factory):
     write_joint_bag(str(d / 'bag'))
     (d / 'robot.urdf').write_text(CARTESIAN_URDF)
     return d
+
+
+@pytest.fixture(scope='session')
+def knocked_bag(tmp_path_factory):
+    """
+    Simulate 150 s of the demo cell in which cam2 is knocked by 1 deg and 4 mm at 75 s.
+
+    Written by ``armcal simulate --knock`` (uncompressed mcap), with its ground truth: the
+    cameras at the end, ``epochs/`` and ``changes.yaml``, and the cell's ``params.yaml``.
+    """
+    from armcal_ros.cli import main
+    bag = tmp_path_factory.mktemp('knocked') / 'bag'
+    assert main(['simulate', '--output', str(bag), '--duration', '150', '--knock',
+                 'cam2:75:1:4', '--no-zstd', '--quiet']) == 0
+    return bag

@@ -54,6 +54,27 @@ def camera_info_msg(cam: Camera, stamp: Time, frame_id=None) -> CameraInfo:
     return msg
 
 
+def uncalibrated_camera_info_msg(name, width, height, stamp: Time,
+                                 frame_id=None) -> CameraInfo:
+    """
+    Return the CameraInfo of a camera with no calibration: D, K, R, P zero.
+
+    sensor_msgs/CameraInfo: "If the camera is uncalibrated, the matrices D, K, R, P should be
+    left zeroed out"; image_geometry and image_proc then treat the camera as uncalibrated.
+    """
+    msg = CameraInfo()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id or optical_frame(name)
+    msg.width = int(width)
+    msg.height = int(height)
+    msg.distortion_model = 'plumb_bob'
+    msg.d = [0.0] * 5
+    msg.k = [0.0] * 9
+    msg.r = [0.0] * 9
+    msg.p = [0.0] * 12
+    return msg
+
+
 def pose_msg(cam: Camera, covariance, base_frame, stamp: Time) -> PoseWithCovarianceStamped:
     """Return T_base_camera of ``cam`` with its 6x6 covariance."""
     t, q = cam.pose_in_world()

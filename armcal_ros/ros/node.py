@@ -170,6 +170,7 @@ class CalibratorNode(Node):
             raise ParameterError(str(exc)) from exc
         self.chain, self.collector, self.engine = pipe.chain, pipe.collector, pipe.engine
         self.engine.on_result(self._on_solve)
+        self.engine.on_change(self._on_change)
         self.queue = EventQueue(QUEUE_BOUNDS)
         self._counts = {}
         self._per_camera = {}
@@ -463,6 +464,33 @@ class CalibratorNode(Node):
                 self.get_logger().error(f'cannot publish the calibration: '
                                         f'{type(exc).__name__}: {exc}')
 
+    def _on_change(self, record):
+        """Engine callback (the worker thread): say it, withdraw a changed camera's calibration."""
+        try:
+            start = self._first_stamp()
+            if record.kind == 'disagreement':
+                # It may repeat for as long as bad detections last: once per 10 s.
+                self.get_logger().warning(record.summary(start), throttle_duration_sec=10.0)
+                return
+            self.get_logger().warning(record.summary(start))
+            if record.camera is not None and record.camera in self.engine.withheld():
+                # An uncalibrated CameraInfo (K all zero) is how a driver says it has no
+                # calibration: consumers stop using the old one until the camera is re-solved.
+                cam = record.camera
+                w, h = self.engine.image_sizes.get(cam, (0, 0))
+                self._publish(self.pub_info[cam], conv.uncalibrated_camera_info_msg(
+                    cam, w, h, self.get_clock().now().to_msg()))
+            self._publish_diagnostics()
+        except Exception as exc:  # noqa: B902 - reporting must not kill the worker thread
+            if not self._closing:
+                self.get_logger().error(f'cannot report a change: {type(exc).__name__}: {exc}')
+
+    def _first_stamp(self):
+        st = self.engine.store
+        stamps = [o.stamp_ns for smp in st.samples for o in smp.observations.values()]
+        stamps += [o.stamp_ns for _, smp in st.retired for o in smp.observations.values()]
+        return min(stamps) if stamps else 0
+
     def _handle_outcome(self, outcome):
         self._last_outcome_wall = time.time()
         if not outcome.accepted:
@@ -476,8 +504,10 @@ class CalibratorNode(Node):
             f'calibration accepted: {cal.model} model, {outcome.n_samples} samples, cost '
             f'{cal.cost:.4g}, {outcome.time_s:.1f} s; RMS '
             + ', '.join(f'{n} {c.rms_px:.3f} px' for n, c in cal.cameras.items()))
-        # Files first: a consumer woken by the new CameraInfo finds them written.
+        # Files first: a consumer woken by the new CameraInfo finds them written.  Cameras
+        # withheld after a change are left out until they are recalibrated.
         self._save('after a solve')
+        cal = self.engine.published or cal
         self._publish_calibration(cal)
         self._commit_to_drivers(cal)
 
@@ -654,7 +684,9 @@ class CalibratorNode(Node):
             n_rejected=e.n_rejected, calibration=e.current, last_outcome=e.last_outcome,
             last_outcome_wall=self._last_outcome_wall, input_counts=dict(self._counts),
             queue_dropped=dict(self.queue.dropped), queue_depth=self.queue.depth(),
-            restored=self._restored)
+            restored=self._restored, changes=list(e.changes.records),
+            withheld=e.withheld(), start_ns=self._first_stamp(),
+            recalibration_samples=e.settings.recalibration_samples)
 
     def _publish_diagnostics(self):
         stamp = self.get_clock().now().to_msg()

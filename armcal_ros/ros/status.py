@@ -61,6 +61,13 @@ class NodeState:
     queue_dropped: Dict[str, int] = field(default_factory=dict)
     queue_depth: Dict[str, int] = field(default_factory=dict)
     restored: str = ''
+    #: Change detection: the engine's records (change_tracking.ChangeRecord), the cameras
+    #: withheld until recalibrated, the first stamp (ns) the times are counted from, and the
+    #: views a changed camera needs.
+    changes: List[object] = field(default_factory=list)
+    withheld: List[str] = field(default_factory=list)
+    start_ns: int = 0
+    recalibration_samples: int = 20
 
 
 def diagnostic_statuses(s: NodeState, node_name='armcal') -> List[Status]:
@@ -116,6 +123,18 @@ def diagnostic_statuses(s: NodeState, node_name='armcal') -> List[Status]:
         values[f'input_{key}'] = s.input_counts[key]
     if s.restored:
         values['restored'] = s.restored
+    real = [r for r in s.changes if r.kind != 'disagreement']
+    values['changes'] = len(real)
+    values['disagreements'] = len(s.changes) - len(real)
+    if s.changes:
+        last = s.changes[-1]
+        values['last_change'] = last.summary(s.start_ns)
+        if last.kind in ('arm', 'unexplained', 'disagreement') and last.status == 'reported':
+            level = max(level, WARN)
+            message += f'; {last.summary(s.start_ns)}'
+    if s.withheld:
+        level = max(level, WARN)
+        message += f'; withheld until recalibrated: {", ".join(s.withheld)}'
     statuses = [Status(level, f'{node_name}: calibration', message, node_name,
                        {k: _fmt(v) for k, v in values.items()})]
     for name in s.camera_names:
@@ -129,6 +148,17 @@ def camera_status(name, s: NodeState, node_name='armcal') -> Status:
     size = s.image_sizes.get(name)
     values['image_size'] = f'{size[0]}x{size[1]}' if size else 'no image yet'
     c = s.calibration.cameras.get(name) if s.calibration is not None else None
+    mine = [r for r in s.changes if r.camera == name and r.kind == 'camera']
+    if mine:
+        values['last_change'] = mine[-1].summary(s.start_ns)
+        values['changes'] = len(mine)
+    if name in s.withheld:
+        rec = mine[-1] if mine else None
+        got = rec.new_observations if rec is not None else 0
+        return Status(WARN, f'{node_name}: {name}',
+                      (rec.summary(s.start_ns) if rec is not None else 'changed') +
+                      f' ({got} of {s.recalibration_samples} new views); its calibration is '
+                      'withheld', name, {k: _fmt(v) for k, v in values.items()})
     if c is None:
         return Status(WARN, f'{node_name}: {name}', 'not calibrated yet', name,
                       {k: _fmt(v) for k, v in values.items()})
