@@ -599,15 +599,27 @@ class ChangeMonitor:
         return total / float(chi2.isf(self.settings.false_alarm, dof))
 
     def _attribute(self, seen: List[View], fired: str):
+        """
+        Say which change explains ``seen``: (kind, camera, evidence) (module docstring).
+
+        A camera is named only if leaving it out explains the views and leaving out another
+        does not: when every single exclusion explains them, the disagreement is too weak to
+        point anywhere (an arm error a little beyond its model, say) and it is 'unexplained'.
+        With one camera there is nothing to compare it with: it is the suspect, and the refit
+        decides.
+        """
         cams = sorted({n for s in seen for n in s.uvs})
         evidence = {f'without {n}': self._agreement(seen, leave_out=n) for n in cams}
         evidence['cameras without the arm'] = self._agreement(seen, use_arm=False)
-        ok = {n: evidence[f'without {n}'] for n in cams
-              if np.isfinite(evidence[f'without {n}']) and evidence[f'without {n}'] <= 1.0}
-        if ok:
+        if len(cams) == 1:
+            return 'camera', cams[0], evidence
+        testable = {n: evidence[f'without {n}'] for n in cams
+                    if np.isfinite(evidence[f'without {n}'])}
+        ok = {n: v for n, v in testable.items() if v <= 1.0}
+        if ok and len(ok) < len(testable):
             return 'camera', min(ok, key=ok.get), evidence
         free = evidence['cameras without the arm']
-        if np.isfinite(free) and free <= 1.0:
+        if not ok and np.isfinite(free) and free <= 1.0:
             return 'arm', None, evidence
         return 'unexplained', fired, evidence
 
