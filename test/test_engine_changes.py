@@ -121,3 +121,13 @@ def test_changes_and_epochs_survive_a_restart(knocked, tmp_path):
     assert [r.summary() for r in back.changes.records] == \
         [r.summary() for r in eng.changes.records]
     assert len(back.store.retired) == len(eng.store.retired)
+
+
+def test_forgetting_retires_views_older_than_the_age_limit():
+    sim, samples = _session([], seed=3, duration=120.0)
+    eng = _run(sim, samples, max_sample_age_s=40.0)
+    newest = max(s.stamp_ns for s in samples)
+    kept = [o.stamp_ns for smp in eng.store.samples for o in smp.observations.values()]
+    assert min(kept) >= newest - 40e9
+    assert eng.store.retired and all(e == -1 for e, _ in eng.store.retired)
+    assert eng.current is not None and sorted(eng.current.cameras) == ['cam1', 'cam2', 'cam3']

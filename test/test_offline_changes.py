@@ -6,6 +6,7 @@ and the camera recalibrated from its new ones; the report says what happened, th
 is of the state at the end of the bag and the state before is under ``epochs/``.
 """
 import json
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -50,3 +51,12 @@ def test_a_knocked_camera_is_found_and_recalibrated_offline(knocked_bag, tmp_pat
     # Knocked by a degree: far from its old pose, close to its new one.
     assert _angle(est['cam2'], before['cam2']) > 0.7
     assert json.loads((out / 'changes.json').read_text())['records'][0]['camera'] == 'cam2'
+
+
+def test_no_change_is_declared_on_the_unchanged_demo_bag(tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    settings = load_settings(str(root / 'config' / 'demo.yaml'))
+    calibrate_bag(str(root / 'bags' / 'demo'), settings, str(tmp_path / 'out'))
+    report = json.loads((tmp_path / 'out' / 'report.json').read_text())
+    assert report['changes']['events'] == [], report['changes']
+    assert report['changes']['solves_while_reading'] >= 3

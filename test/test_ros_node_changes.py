@@ -1,6 +1,7 @@
 """
-The live node follows a knocked camera, on real rclpy and DDS (``knocked_bag``: cam2 knocked by
-1 deg and 4 mm half-way through 150 s, replayed at 4 x).
+The live node follows a knocked camera, on real rclpy and DDS.
+
+``knocked_bag``: cam2 knocked by 1 deg and 4 mm half-way through 150 s, replayed at 4 x.
 
 The node must say what happened on /diagnostics, withdraw cam2's calibration while it has too
 few new views (an uncalibrated CameraInfo: K zero), and end with cam2's CameraInfo and pose
