@@ -33,6 +33,9 @@ CHANGES_FILE = 'changes.json'
 #: Samples of the calibration's own that calibrate the monitor's scale: the median of a few
 #: hundred is within a few per cent, and the cost stays a fraction of a second.
 REFERENCE_SAMPLES = 300
+#: Views of a recalibrated camera after which its change is no longer re-measured: the size's
+#: precision then no longer limits anything (a few hundredths of a degree).
+SIZING_VIEWS = 200
 
 
 @dataclass
@@ -101,6 +104,8 @@ class ChangeTracker:
         self.epoch = 0
         #: epoch -> the calibration in force when it ended (written under DIR/epochs/)
         self.epoch_calibrations: Dict[int, object] = {}
+        #: camera -> (its record, the predictor it was found with, views sized on so far)
+        self._sizing: Dict[str, tuple] = {}
         #: camera -> (its record, its last calibration before the change, the predictor the
         #: change was found with)
         self.recalibrating: Dict[str, tuple] = {}
@@ -176,6 +181,7 @@ class ChangeTracker:
         rec.retired = store.retire(event.onset_ns, self.epoch, camera)
         old = calibration.cameras.get(camera) if calibration is not None else None
         self.recalibrating[camera] = (rec, old, event.model)
+        self._sizing.pop(camera, None)
         self.records.append(rec)
         return rec
 
@@ -231,26 +237,34 @@ class ChangeTracker:
         A changed camera's new views (in ``arrays``) are refitted against the predictor the
         change was found with (:func:`~armcal_ros.core.change.size_change`): the size and the
         kind (pose or lens) are then measured in the old calibration's own frame, free of the
-        drift of the whole solution between the two solves.
+        drift of the whole solution between the two solves.  The measurement is repeated at
+        every accepted solve while the camera gathers views (up to :data:`SIZING_VIEWS`): a
+        focus change that twenty views cannot tell from a move along the axis may show later.
         """
         for name in list(self.recalibrating):
             if name not in calibration.cameras or not self.ready(name):
                 continue
             rec, old, model = self.recalibrating.pop(name)
             rec.status = 'recalibrated'
-            if model is None or name not in model.cameras:
-                rec.what = 'camera'
-                continue
-            points, obs = per_point(arrays)
+            rec.what = 'camera'
+            if model is not None and name in model.cameras:
+                self._sizing[name] = (rec, model, 0)
+        points, obs = per_point(arrays)
+        for name, (rec, model, n_done) in list(self._sizing.items()):
             views = [View(0, X, uvs) for X, uvs in zip(points, obs) if name in uvs]
+            if len(views) <= n_done:
+                continue
             try:
-                rec.what, fit = size_change(model, name, views,
+                rec.what, fit = size_change(model, name, views[:SIZING_VIEWS],
                                             false_alarm=self.settings.false_alarm)
             except (np.linalg.LinAlgError, ValueError):
-                rec.what = 'camera'
                 continue
             rec.rotation_deg, rec.translation_mm = fit.rotation_deg, fit.translation_mm
             rec.focal_percent = fit.focal_percent
+            if len(views) >= SIZING_VIEWS:
+                del self._sizing[name]
+            else:
+                self._sizing[name] = (rec, model, len(views))
 
     def withheld(self):
         """Return the cameras whose published calibration no longer holds."""

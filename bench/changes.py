@@ -7,7 +7,7 @@ or refocused (0.5 % and 2 % of focal length) at a random time in the middle thir
 The samples are the dwells at point level (:func:`~armcal_ros.sim.point_level.dwell_observations`,
 0.02 px of pooled image noise: what the front end's pooled detections show on these cells,
 bench/cells.py), fed in time order to the engine as the offline pipeline does
-(``solve_if_grown``), with the `correlated` model.  Per case: detected (the right camera), the
+(``solve_if_grown``), with the `kinematic` model.  Per case: detected (the right camera), the
 delay (the changed camera's views and seconds from the change to the declaration), the
 changed camera's final error against its new truth (rotation, centre, focal length) beside the
 same from a calibration of the post-change samples alone, and the worst unchanged camera's
@@ -31,6 +31,7 @@ import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from armcal_ros.core.adjustment import SolverSettings  # noqa: E402
+from armcal_ros.core.kinematic_prior import KinematicData  # noqa: E402
 from armcal_ros.core.priors import PriorSettings  # noqa: E402
 from armcal_ros.engine import CalibrationEngine, EngineSettings  # noqa: E402
 from armcal_ros.frontend.samples import Observation, Sample  # noqa: E402
@@ -39,6 +40,9 @@ from armcal_ros.sim.cells import CELLS  # noqa: E402
 from armcal_ros.sim.point_level import dwell_observations  # noqa: E402
 
 DURATION = 300.0
+#: The engine's model: what `auto` chooses on these cells or its runner-up (BENCHMARKS.md,
+#: accuracy-bag and cells), without auto's search at every solve.
+MODEL = 'kinematic'
 PIXEL_SIGMA = 0.02
 CELL_SCENARIOS = {'puma-3cam': 'nongeometric', 'ur5-2cam': 'geometric', 'desk-4cam': 'mixed'}
 KNOCKS_DEG = (0.1, 0.25, 0.5, 1.0, 2.0)
@@ -62,8 +66,13 @@ def samples_of(sim, seed, after_ns=None):
 def run_engine(sim, samples, detect=True):
     """Feed ``samples`` in time order, solving as they double; return the engine."""
     names = [c.name for c in sim.cameras]
-    eng = CalibrationEngine(EngineSettings(names, PriorSettings('correlated'), SolverSettings(),
-                                           min_samples=20, detect_changes=detect))
+    chain, place = sim.chain, np.asarray(sim.settings.marker_offset, float)
+
+    def kinematics(Q, at=place):
+        return KinematicData(chain.jacobian_errors(Q, at), chain.error_names)
+    eng = CalibrationEngine(EngineSettings(names, PriorSettings(MODEL), SolverSettings(),
+                                           min_samples=20, detect_changes=detect),
+                            kinematics_fn=kinematics)
     for c in sim.cameras:
         eng.set_image_size(c.name, c.width, c.height)
     for s in samples:
@@ -188,7 +197,7 @@ def main(argv=None):
           f'{DURATION:.0f} s sessions, {args.seeds} seeds per case, one camera knocked (random '
           'axis, 2-10 mm) or refocused at a random time in the middle third; point-level '
           f'samples ({PIXEL_SIGMA} px pooled noise) fed in time order to the engine '
-          '(`correlated` model, solving as the samples double, change detection at its '
+          f'(`{MODEL}` model, solving as the samples double, change detection at its '
           'defaults: one false alarm per million views). Delay: the changed camera\'s views '
           '(worst case) and seconds (median) from the change to the declaration. Errors of the '
           'changed camera against its new truth (median): after recovery, and from a '
