@@ -34,6 +34,7 @@ bench: $(STAMP)
 	$(PY) bench/node.py
 	$(PY) bench/uncertainty.py
 	$(PY) bench/hyperparameters.py
+	$(PY) bench/changes.py
 	$(PY) bench/real_data.py
 
 clean:

@@ -128,7 +128,8 @@ def main(argv=None):
                  realtime_ratio_cpu=duration / (c_front + c_solve), samples=len(front.store))
     rows = [['bag', f'{duration:.0f} s, {n_frames} frames (3 cameras), '
                     f'{topics[settings.inputs.joint_states_topic][1]} joint states'],
-            ['front end (read, pair, detect still frames, pool)',
+            ['front end (read, pair, detect still frames, pool; test each sample for a change, '
+             'solving as the samples double)',
              f'{t_front:.1f} s wall, {c_front:.1f} s CPU -> {len(front.store)} samples'],
             [f'solve ({settings.prior.model})', f'{t_solve:.2f} s wall'],
             ['frames per second (whole pipeline)', f'{n_frames / (t_front + t_solve):.0f}'],
