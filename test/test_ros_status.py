@@ -62,3 +62,28 @@ def test_diagnostics_before_a_calibration():
     assert conv.diagnostic_values(msg, 'nope') is None
     dropped = diagnostic_statuses(_state(queue_dropped={'image': 4}))[0]
     assert 'dropped' in dropped.message and dropped.values['queue_dropped_image'] == '4'
+
+
+def test_diagnostics_say_a_camera_changed_and_is_withheld():
+    from armcal_ros.change_tracking import ChangeRecord
+    start = 1_000_000_000_000
+    moved = ChangeRecord('camera', 'cam2', 1, start + int(95e9), start + int(101e9), 30.0, 23.4,
+                         8, new_observations=7)
+    st = diagnostic_statuses(_state(changes=[moved], withheld=['cam2'], start_ns=start))
+    main, cam2 = st[0], st[2]
+    assert main.level == 1 and 'withheld until recalibrated: cam2' in main.message
+    assert main.values['changes'] == '1'
+    assert cam2.level == 1
+    assert cam2.message.startswith('cam2 changed at t = 95.0 s: recalibrating')
+    assert '(7 of 20 new views)' in cam2.message
+    # Recalibrated: the camera's status carries what happened.
+    moved.status, moved.what = 'recalibrated', 'pose'
+    moved.rotation_deg, moved.translation_mm, moved.focal_percent = 0.6, 4.0, 0.01
+    st = diagnostic_statuses(_state(changes=[moved], start_ns=start))
+    assert st[2].values['last_change'] == ('cam2 changed at t = 95.0 s: pose (0.60 deg / 4.0 '
+                                           'mm, focal +0.01 %), recalibrated')
+    # An arm alarm is a warning on the calibrator's status until it is confirmed or gone.
+    arm = ChangeRecord('arm', None, 1, start + int(200e9), start + int(205e9), 30.0, 23.4, 5,
+                       status='reported')
+    main = diagnostic_statuses(_state(changes=[moved, arm], start_ns=start))[0]
+    assert main.level == 1 and 'disagreed with the arm at t = 200.0 s' in main.message
