@@ -35,6 +35,7 @@ bench: $(STAMP)
 	$(PY) bench/uncertainty.py
 	$(PY) bench/hyperparameters.py
 	$(PY) bench/changes.py
+	$(PY) bench/realism.py
 	$(PY) bench/real_data.py
 
 clean:

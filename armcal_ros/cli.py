@@ -45,6 +45,12 @@ def _add_simulate(p):
     p.add_argument('--refocus', action='append', default=[], metavar='CAM:TIME:PERCENT',
                    help='change camera CAM\'s focal length (fx, fy) by PERCENT %% TIME s into '
                         'the session (repeatable)')
+    p.add_argument('--lamp', type=float, nargs=3, default=None, metavar=('X', 'Y', 'Z'),
+                   help='light the marker, a matte ball, by one lamp at X Y Z (m, base frame) '
+                        'instead of letting it glow alike from every side')
+    p.add_argument('--ambient', type=float, default=0.25,
+                   help='with --lamp: the fraction of the full brightness the ball\'s unlit '
+                        'side keeps (default 0.25)')
     p.add_argument('--quiet', action='store_true')
 
 
@@ -101,6 +107,9 @@ def _run_simulate(args):
                     for text in texts)
     if changes:
         settings = dataclasses.replace(settings, camera_changes=changes)
+    if args.lamp is not None:
+        settings = dataclasses.replace(settings, sensor=dataclasses.replace(
+            settings.sensor, lamp=tuple(args.lamp), ambient=args.ambient))
     result = simulate_cell(scenario, args.seed, args.duration, settings)
 
     def progress(i, n):

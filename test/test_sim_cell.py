@@ -185,3 +185,34 @@ def test_dh_error_model_keeps_the_draws_on_dh_components_only():
     assert np.count_nonzero(dh) == 6 + 5 * 3 + 3
     with pytest.raises(ValueError, match='error_model must be one of'):
         SimSettings(error_model='hayati')
+
+
+def test_a_lamp_shades_the_ball_and_moves_its_centroid_towards_the_light(cell):
+    from dataclasses import replace
+    f = cell.frames
+    sensor = cell.settings.sensor
+    i = int(np.flatnonzero(f.occlusion == OCCLUSION_NONE)[3])
+    cam = cell.cameras[int(f.camera[i])]
+    X = f.marker[i]
+    radius = cell.settings.marker_radius
+
+    def centroid(s):
+        u0, v0, patch = marker_signal(cam, X[None], radius, s, 0.6)
+        vv, uu = np.mgrid[v0:v0 + patch.shape[0], u0:u0 + patch.shape[1]]
+        return np.array([(uu * patch).sum(), (vv * patch).sum()]) / patch.sum(), patch
+    # No lamp: as before, the centroid is the centre's image (to the perspective offset).
+    c0, p0 = centroid(sensor)
+    assert np.linalg.norm(c0 - cam.project(X[None])[0]) < 0.01
+    # A lamp straight along the camera's +x axis (image right) from the ball, far away: the
+    # centroid moves right, not up or down, by a fraction of the image radius.
+    lamp = X + 5.0 * cam.rotation[0]
+    c1, p1 = centroid(replace(sensor, lamp=tuple(lamp), ambient=0.25))
+    r_px = cam.fx * radius / cam.to_camera(X[None])[0, 2]
+    shift = c1 - c0
+    assert 0.1 * r_px < shift[0] < 0.6 * r_px and abs(shift[1]) < 0.05 * r_px
+    # Nothing brighter than a fully lit point, the unlit side at the ambient fraction.
+    assert p1.max() <= p0.max() + 1e-9 and p1.sum() < p0.sum()
+    with pytest.raises(ValueError, match='ambient'):
+        SensorModel(ambient=1.5)
+    with pytest.raises(ValueError, match='lamp'):
+        SensorModel(lamp=(0.0, 1.0))

@@ -39,6 +39,12 @@ only where there is signal when ``read_noise`` < 0.1 DN (identical in distributi
 precision), and everywhere otherwise.  Spurious highlights (glints off the arm) are small
 Gaussian specks of random brightness, now and then close to the marker.
 
+A lamp (off by default, ``SensorModel.lamp``): a matte white ball lit by one lamp is shaded -
+bright towards the lamp, down to an ``ambient`` fraction on its far side - and which side each
+camera sees bright depends on where it stands.  Its intensity centroid then moves towards the
+lit side by a fraction of the image radius, differently in every camera: the bias a real
+marker's appearance brings (bench/realism.py measures what it does to the detector).
+
 Clutter (off by default): a camera exposed for the scene rather than for the marker sees the
 cell behind it.  ``clutter_level`` > 0 gives each camera a static scene (:func:`clutter_scene`):
 shaded surfaces, boxes, discs and bars of random brightness around that level, with sharp
@@ -48,6 +54,7 @@ Shot and read noise then apply to every pixel.
 """
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 from scipy.ndimage import gaussian_filter
@@ -74,6 +81,12 @@ class SensorModel:
     colour_gains: tuple = (1.0, 0.95, 0.85)   # R, G, B response to the (white) LED
     clutter_level: float = 0.0      # DN, mean brightness of a static scene (0: black)
     clutter_spots: int = 0          # static marker look-alikes per camera
+    #: Lighting of the marker: None, a sphere that glows alike from every side (its image's
+    #: intensity centroid is its centre's image); or the base-frame position (m) of one lamp
+    #: shading a matte (Lambertian) ball, with ``ambient`` the fraction of ``peak`` its unlit
+    #: side still has.  Which side is bright depends on where each camera stands.
+    lamp: Optional[tuple] = None
+    ambient: float = 0.25
 
     def __post_init__(self):
         for name in ('peak', 'gain', 'exposure'):
@@ -85,6 +98,13 @@ class SensorModel:
                 raise ValueError(f'{name} must be >= 0, got {getattr(self, name)}')
         if int(self.supersample) < 1 or int(self.motion_samples) < 1:
             raise ValueError('supersample and motion_samples must be >= 1')
+        if not 0.0 <= self.ambient <= 1.0:
+            raise ValueError(f'ambient must be in [0, 1], got {self.ambient}')
+        if self.lamp is not None:
+            lamp = np.asarray(self.lamp, float)
+            if lamp.shape != (3,) or not np.all(np.isfinite(lamp)):
+                raise ValueError(f'lamp must be 3 finite numbers (m, base frame), got {self.lamp}')
+            self.lamp = tuple(float(v) for v in lamp)
 
 
 def sphere_image_offset(cam, X, radius):
@@ -103,7 +123,8 @@ def sphere_image_offset(cam, X, radius):
     return f * (0.5 * (np.tan(t + a) + np.tan(t - a)) - np.tan(t))
 
 
-def sphere_coverage(cam, centres, radius, u0, v0, width, height, supersample=8):
+def sphere_coverage(cam, centres, radius, u0, v0, width, height, supersample=8, lamp=None,
+                    ambient=0.25):
     """
     Return the fraction of each pixel of a window covered by the image of a sphere.
 
@@ -112,6 +133,11 @@ def sphere_coverage(cam, centres, radius, u0, v0, width, height, supersample=8):
 
     With K centres the coverage is averaged over them (instants of an exposure), sharing the
     undistorted rays.  Returns (height, width) floats in [0, 1].
+
+    With a ``lamp`` (world position) each covered sub-pixel is weighted by the Lambertian
+    shading of the surface point its ray meets first, ambient + (1 - ambient) max(0, n . l):
+    P = t d with t = (d.C - sqrt((d.C)^2 - |d|^2 (|C|^2 - r^2))) / |d|^2, n = (P - C) / r,
+    l the unit vector from P to the lamp (camera frame).
     """
     S = int(supersample)
     # Undistort the pixel corners exactly, then interpolate bilinearly inside each pixel: the
@@ -134,9 +160,22 @@ def sphere_coverage(cam, centres, radius, u0, v0, width, height, supersample=8):
     dd = np.einsum('ij,ij->i', d, d)
     hits = np.zeros(len(d))
     C_all = cam.to_camera(np.atleast_2d(np.asarray(centres, float)))
+    lamp_c = None if lamp is None else cam.to_camera(np.asarray(lamp, float)[None])[0]
     for C in C_all:
         cross = np.cross(d, C)
-        hits += (np.einsum('ij,ij->i', cross, cross) <= radius ** 2 * dd) & (d @ C > 0)
+        inside = (np.einsum('ij,ij->i', cross, cross) <= radius ** 2 * dd) & (d @ C > 0)
+        if lamp_c is None:
+            hits += inside
+            continue
+        di, ddi = d[inside], dd[inside]
+        dc = di @ C
+        t = (dc - np.sqrt(np.maximum(dc * dc - ddi * (C @ C - radius ** 2), 0.0))) / ddi
+        P = di * t[:, None]
+        n = (P - C) / radius
+        toward = lamp_c - P
+        toward /= np.linalg.norm(toward, axis=1, keepdims=True)
+        shade = ambient + (1.0 - ambient) * np.maximum(np.einsum('ij,ij->i', n, toward), 0.0)
+        hits[inside] += shade
     hits /= len(C_all)
     return hits.reshape(height, S, width, S).mean(axis=(1, 3))
 
@@ -171,7 +210,7 @@ def marker_signal(cam, centres, radius, sensor: SensorModel, blur_sigma, margin=
         return None
     w, h = u1 - u0, v1 - v0
     signal = sensor.peak * sphere_coverage(cam, centres, radius, u0, v0, w, h,
-                                           sensor.supersample)
+                                           sensor.supersample, sensor.lamp, sensor.ambient)
     if sensor.vignetting:
         vv, uu = np.mgrid[v0:v1, u0:u1]
         signal *= vignetting(cam, uu, vv)
