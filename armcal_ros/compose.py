@@ -142,7 +142,20 @@ def engine_settings(settings: Settings, board: Optional[BoardTarget] = None) -> 
                           detect_changes=s.detect_changes,
                           change=ChangeSettings(false_alarm=s.change_false_alarm),
                           recalibration_samples=s.recalibration_samples,
-                          max_sample_age_s=s.max_sample_age_s).validate()
+                          max_sample_age_s=s.max_sample_age_s,
+                          marker_light=_marker_light(settings)).validate()
+
+
+def _marker_light(settings: Settings):
+    """Return the engine's marker_light of a lit ball (None when no lamp is given)."""
+    t = settings.target
+    if not t.lamp:
+        return None
+    if t.marker_type != 'sphere':
+        raise ValueError('marker_lamp is for marker_type sphere, got ' + repr(t.marker_type))
+    if not t.radius > 0:
+        raise ValueError('marker_lamp needs marker_radius > 0 (the ball\'s radius, m)')
+    return tuple(t.lamp), t.ambient, t.radius
 
 
 def _place_by_kinematics(settings: Settings) -> bool:

@@ -50,6 +50,7 @@ from armcal_ros.core.initialisation import initialise_with_intrinsics
 from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
 from armcal_ros.core.image_noise import pooled_pixel_sigma
 from armcal_ros.core.kinematic_prior import KinematicData, tip_place
+from armcal_ros.core.marker_light import image_offsets
 from armcal_ros.core.priors import KINEMATIC_MODELS, PriorSettings
 from armcal_ros.core.results import Calibration, calibration_from_result
 from armcal_ros.core.target import invert, pose_vector
@@ -92,6 +93,10 @@ class EngineSettings:
     #: Forgetting for slow drift: observations older than this (s, before the newest sample)
     #: are retired before each solve; 0 keeps everything.
     max_sample_age_s: float = 0.0
+    #: A matte ball lit by one lamp: (lamp position (3,) in base_frame, ambient fraction, ball
+    #: radius m); each view's centroid offset is removed before a solve
+    #: (:mod:`armcal_ros.core.marker_light`).  None: the marker glows alike from every side.
+    marker_light: Optional[Tuple[Tuple[float, float, float], float, float]] = None
 
     def validate(self):
         """Raise ValueError naming the first bad setting; return self."""
@@ -112,6 +117,17 @@ class EngineSettings:
                 self.recalibration_samples < 6:
             raise ValueError('recalibration_samples must be an integer >= 6 (a camera has 6 '
                              f'pose parameters), got {self.recalibration_samples!r}')
+        if self.marker_light is not None:
+            lamp, ambient, radius = self.marker_light
+            if np.shape(lamp) != (3,) or not np.all(np.isfinite(lamp)):
+                raise ValueError(f'marker_lamp must be 3 finite numbers (m), got {lamp}')
+            if not 0.0 <= ambient <= 1.0:
+                raise ValueError(f'marker_ambient must be in [0, 1], got {ambient}')
+            if not (np.isfinite(radius) and radius > 0):
+                raise ValueError('marker_radius must be > 0 (m) to correct a lit marker, got '
+                                 f'{radius}')
+            if self.board is not None:
+                raise ValueError('marker_lamp is for a sphere marker, not a board target')
         if not (np.isfinite(self.max_sample_age_s) and self.max_sample_age_s >= 0):
             raise ValueError(f'max_sample_age must be >= 0 s, got {self.max_sample_age_s}')
         if self.board is not None:
@@ -541,6 +557,8 @@ class CalibrationEngine:
             points, kin, place, initial, note = self._points_at_place(
                 arrays, kin, specs_kept, obs, initial, solver)
             kw['kinematics'] = kin
+        if self.settings.marker_light is not None:
+            obs, initial = self._light_corrected(specs_kept, points, obs, initial, solver, kw)
         if self.settings.prior.model != 'auto':
             kw['reference'] = self._reference_for(specs_kept, points, obs, initial, kin, solver,
                                                   n, arrays, sel)
@@ -564,6 +582,32 @@ class CalibrationEngine:
                 outcome.calibration.hyperparameters['T_link_target'] = pose_vector(T)
                 outcome.calibration.hyperparameters['place_stage'] = note
         return self._finish(outcome)
+
+    def _light_corrected(self, specs, points, obs, initial, solver, kw):
+        """
+        Observations with a lit ball's centroid offsets removed; the initial cameras used.
+
+        The offset of each view depends on where the camera stands
+        (:func:`~armcal_ros.core.marker_light.image_offsets`): it is computed with the current
+        calibration, or, on a first solve, with a first calibration of the uncorrected views
+        (a bias of half a pixel moves cameras far less than the offsets' own dependence on
+        them needs).
+        """
+        lamp, ambient, radius = self.settings.marker_light
+        cams = dict(initial or {})
+        if any(s.name not in cams for s in specs):
+            first = calibrate(specs, points, obs, replace(self.settings.prior, model='fixed'),
+                              solver, initial=initial or None,
+                              **{k: v for k, v in kw.items() if k == 'pooled_sigma_px'})
+            cams.update({k: v for k, v in first.cameras.items() if k not in cams})
+        have = [s.name in cams for s in specs]
+        sel = np.asarray(have)[obs.camera]
+        offsets = np.zeros_like(obs.uv)
+        if np.any(sel):
+            cam_list = [cams.get(s.name) for s in specs]
+            offsets[sel] = image_offsets(cam_list, obs.camera[sel], points[obs.point[sel]],
+                                         lamp, ambient, radius)
+        return Observations(obs.camera, obs.point, obs.uv - offsets), (cams or None)
 
     def _forget_old_samples(self):
         """Retire observations older than ``max_sample_age_s`` before the newest (lock held)."""

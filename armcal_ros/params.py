@@ -231,6 +231,17 @@ PARAMS = [
           'the cameras ride on marker_link and look at a static target: marker_offset (a point) '
           'or target_pose_guess (a tag or board) are then its place in base_frame, and the '
           'cameras\' poses are given in marker_link (T_<marker_link>_camera)'),
+    Param('marker_lamp', 'double[]', [],
+          'a matte ball lit by one lamp: the lamp\'s [x, y, z] in base_frame (m); each view\'s '
+          'centroid, pulled towards the lit side, is corrected (needs marker_radius); empty: '
+          'the marker glows alike from every side (an LED in a diffuser)',
+          lambda v: None if len(v) in (0, 3) and all(math.isfinite(x) for x in v)
+          else 'must be empty or 3 finite numbers'),
+    Param('marker_ambient', 'double', 0.25,
+          'with marker_lamp: the brightness of the ball\'s unlit side as a fraction of full light',
+          lambda v: None if 0.0 <= v <= 1.0 else 'must be in [0, 1]', minimum=0.0, maximum=1.0),
+    Param('marker_radius', 'double', 0.0,
+          'the ball\'s radius (m), for marker_lamp; 0: not given', _nonneg, minimum=0.0),
     Param('target_pose_guess', 'double[]', [],
           'T_link_target of a board as [x, y, z, qx, qy, qz, qw] (seed when estimated; empty: '
           'found by hand-eye, or the data set\'s own guess)', _pose7),

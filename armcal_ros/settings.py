@@ -142,6 +142,11 @@ class TargetSettings:
     eye_in_hand: bool = False
     #: Estimate the tag's side (``aruco_size`` is then a guess).
     estimate_size: bool = False
+    #: A matte ball lit by one lamp: its position (base frame, m; empty: none), the unlit
+    #: side's fraction and the ball's radius (m).
+    lamp: Tuple[float, ...] = ()
+    ambient: float = 0.25
+    radius: float = 0.0
     #: T_link_target of a board as (x, y, z, qx, qy, qz, qw); empty: unknown.
     pose_guess: Tuple[float, ...] = ()
     estimate_mount: bool = False
@@ -350,7 +355,8 @@ def settings_from_values(values: Dict[str, Any], require_robot_model=True,
                                 v['charuco_legacy_pattern']),
             aruco_size=v['aruco_size'], pose_guess=tuple(v['target_pose_guess']),
             estimate_mount=v['estimate_marker_offset'], eye_in_hand=v['eye_in_hand'],
-            estimate_size=v['estimate_aruco_size']),
+            estimate_size=v['estimate_aruco_size'], lamp=tuple(v['marker_lamp']),
+            ambient=v['marker_ambient'], radius=v['marker_radius']),
         detector=DetectorSettings(v['sphere_min_radius_px'], v['sphere_max_radius_px'],
                                   v['sphere_static_scene'], v['aruco_dictionary'],
                                   None if aruco_id < 0 else aruco_id,

@@ -74,3 +74,16 @@ def test_decoded_targets_need_one_frame_a_sphere_two():
     assert build_pipeline(_settings(marker_type='aruco')).collector.pooler.min_frames == 1
     pipe = build_pipeline(_settings(estimate_marker_offset=True, **BOARD))
     assert pipe.collector.pooler.min_frames == 1
+
+
+def test_a_lit_marker_needs_its_radius_and_a_sphere():
+    from armcal_ros.params import check_value
+    lit = engine_settings(_settings(marker_lamp=[0.5, 0.0, 1.5], marker_radius=0.005))
+    assert lit.marker_light == ((0.5, 0.0, 1.5), 0.25, 0.005)
+    assert engine_settings(_settings()).marker_light is None
+    with pytest.raises(ValueError, match='marker_radius'):
+        engine_settings(_settings(marker_lamp=[0.5, 0.0, 1.5]))
+    with pytest.raises(ValueError, match='marker_lamp'):
+        check_value('marker_lamp', [0.5, 0.0])
+    with pytest.raises(ValueError, match='marker_ambient'):
+        check_value('marker_ambient', 1.2)

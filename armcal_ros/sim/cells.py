@@ -87,15 +87,21 @@ def cell_parameters(settings: SimSettings, compressed=None, noise_model='auto') 
     Return the calibrator parameters (``ros__parameters``) matching a simulated cell.
 
     Only what describes the cell: URDF, marker link, joint-state and image topics, camera
-    names; everything else keeps the node's defaults.
+    names, and when the ball is lit by a lamp, where the lamp hangs and the ball's size (what
+    a user of that cell would know); everything else keeps the node's defaults.
     """
     urdf = settings.urdf_path or default_urdf_path()
     names = list(settings.camera_names)
-    return dict(robot_description_file=urdf, base_frame=settings.base_frame,
-                marker_link=settings.marker_link, marker_offset=list(settings.marker_offset),
-                marker_type='sphere', joint_states_topic='/joint_states',
-                camera_names=names, image_topics=[image_topic(n, compressed) for n in names],
-                noise_model=noise_model)
+    out = dict(robot_description_file=urdf, base_frame=settings.base_frame,
+               marker_link=settings.marker_link, marker_offset=list(settings.marker_offset),
+               marker_type='sphere', joint_states_topic='/joint_states',
+               camera_names=names, image_topics=[image_topic(n, compressed) for n in names],
+               noise_model=noise_model)
+    if settings.sensor.lamp is not None:
+        out.update(marker_lamp=[float(v) for v in settings.sensor.lamp],
+                   marker_ambient=float(settings.sensor.ambient),
+                   marker_radius=float(settings.marker_radius))
+    return out
 
 
 __all__ = ['Cell', 'CELLS', 'cell_parameters', 'get_cell']
