@@ -104,6 +104,41 @@ def pipeline_case(args):
     return out
 
 
+#: Lamps tried in place of the true one (offsets from it, m), for the identifiability check.
+LAMP_OFFSETS = ((0.0, 0.0, 1.0), (0.0, 0.0, -0.6), (0.95, 0.0, -0.5), (0.0, 1.0, -0.3),
+                (-0.95, 0.0, -0.3), (0.0, -1.0, -0.3))
+
+
+def lamp_search(duration):
+    """Calibrate one lit recording with no lamp, the true one and wrong ones: can data tell?"""
+    cell = 'puma-3cam'
+    lamp = np.array(lamp_of(CELLS[cell].sim_settings()))
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        bag = os.path.join(tmp, 'bag')
+        assert armcal(['simulate', '--cell', cell, '--duration', str(duration), '--output', bag,
+                       '--no-zstd', '--quiet', '--lamp', *map(str, lamp)]) == 0
+        base = yaml.safe_load(open(os.path.join(bag, 'ground_truth', 'params.yaml')))
+        tries = [('none', [])] + [('true', list(lamp))] + [
+            (f'true + {off}', list(lamp + off)) for off in LAMP_OFFSETS]
+        for label, given in tries:
+            doc = yaml.safe_load(yaml.safe_dump(base))
+            doc['armcal']['ros__parameters'].update(marker_lamp=[float(v) for v in given],
+                                                    noise_model='kinematic')
+            params = os.path.join(tmp, 'p.yaml')
+            with open(params, 'w') as f:
+                yaml.safe_dump(doc, f)
+            out = os.path.join(tmp, 'out_' + str(len(rows)))
+            assert armcal(['calibrate', bag, '--params', params, '--output', out,
+                           '--quiet']) == 0
+            report = yaml.safe_load(open(os.path.join(out, 'report.json')))
+            est = {c.name: c for c in read_cameras(out)[1]}
+            sc = compare(est, os.path.join(bag, 'ground_truth'))
+            rows.append([label, f'{report["chosen"]["pixel_sigma"]:.4f}',
+                         f'{sc.shape_mm:.3f}', f'{sc.absolute_mm:.3f}'])
+    return rows
+
+
 def main(argv=None):
     """Run the benchmark, print the table and write it to docs/."""
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[1])
@@ -120,6 +155,7 @@ def main(argv=None):
     with Pool(args.processes) as pool:
         runs = pool.map(detect_session, jobs, chunksize=1)
         pipes = pool.map(pipeline_case, pipe_jobs, chunksize=1)
+        search = lamp_search(args.pipeline_duration)
     prow = []
     for cell in CELL_NAMES:
         ps = [p for p in pipes if p['cell'] == cell]
@@ -163,11 +199,16 @@ def main(argv=None):
           'empty (not corrected) and given (corrected: each view\'s offset computed from the '
           'ball\'s shading, core/marker_light.py). The lamp\'s place is the simulator\'s (what '
           'a user of the cell would measure).', '',
-          table(['cell', 'lighting', 'shape mm', 'absolute mm', 'focal %'], prow)]
+          table(['cell', 'lighting', 'shape mm', 'absolute mm', 'focal %'], prow), '',
+          'Can the data find the lamp? One lit puma-3cam recording (seed 0) calibrated with '
+          '`kinematic` given no lamp, the true one and lamps a metre off: the image noise '
+          'left in the residuals (what a search would minimise) against the shape error.', '',
+          table(['lamp given', 'image noise px', 'shape mm', 'absolute mm'], search)]
     text = '\n'.join(md)
     print(text)
     write_section('realism', text)
-    write_json('realism', dict(runs=runs, pipeline=pipes, machine=machine()))
+    write_json('realism', dict(runs=runs, pipeline=pipes, lamp_search=search,
+                               machine=machine()))
     return 0
 
 
