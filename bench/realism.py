@@ -110,7 +110,7 @@ LAMP_OFFSETS = ((0.0, 0.0, 1.0), (0.0, 0.0, -0.6), (0.95, 0.0, -0.5), (0.0, 1.0,
 
 
 def lamp_search(duration):
-    """Calibrate one lit recording with no lamp, the true one and wrong ones: can data tell?"""
+    """Calibrate one lit recording given no lamp, the true one and wrong ones (can data tell)."""
     cell = 'puma-3cam'
     lamp = np.array(lamp_of(CELLS[cell].sim_settings()))
     rows = []
