@@ -59,8 +59,8 @@ class ChangeRecord:
     focal_percent: float = float('nan')
     new_observations: int = 0
 
-    def summary(self, start_ns=0):
-        """Return one line for a log or /diagnostics."""
+    def summary(self, start_ns=0, needed=None):
+        """Return one line for a log or /diagnostics (``needed``: the views to recalibrate)."""
         t = (self.onset_ns - start_ns) * 1e-9
         if self.kind == 'disagreement':
             return (f'{self.camera}: views from t = {t:.1f} s disagreed with its calibration, '
@@ -77,8 +77,8 @@ class ChangeRecord:
                     f'change explains them (first seen by {self.camera}); watching')
         head = f'{self.camera} changed at t = {t:.1f} s'
         if self.status == 'recalibrating':
-            return (f'{head}: recalibrating, {self.new_observations} of the observations needed '
-                    'so far')
+            of = f' of {needed}' if needed else ''
+            return f'{head}: recalibrating ({self.new_observations}{of} new views)'
         size = (f'{self.rotation_deg:.2f} deg / {self.translation_mm:.1f} mm, focal '
                 f'{self.focal_percent:+.2f} %')
         return f'{head}: {self.what} ({size}), recalibrated'
@@ -93,10 +93,8 @@ class ChangeTracker:
 
     def __init__(self, settings: ChangeSettings = None, recalibration_samples=20,
                  enabled=True):
-        self.settings = (settings or ChangeSettings()).validate()
-        if int(recalibration_samples) != recalibration_samples or recalibration_samples < 6:
-            raise ValueError('recalibration_samples must be an integer >= 6 (a camera has 6 '
-                             f'pose parameters), got {recalibration_samples!r}')
+        # Checked where they enter (EngineSettings.validate).
+        self.settings = settings or ChangeSettings()
         self.recalibration_samples = int(recalibration_samples)
         self.enabled = bool(enabled)
         self.monitor: Optional[ChangeMonitor] = None
@@ -214,12 +212,10 @@ class ChangeTracker:
         self.records.append(rec)
         return rec
 
-    def count_new(self, arrays):
-        """Update each recalibrating camera's count of new observations from ``arrays``."""
+    def count_new(self, views):
+        """Update each recalibrating camera's count of new views (``views``: camera -> count)."""
         for name, (rec, *_) in self.recalibrating.items():
-            if name in arrays.camera_names:
-                j = arrays.camera_names.index(name)
-                rec.new_observations = int(np.count_nonzero(arrays.camera_index == j))
+            rec.new_observations = int(views.get(name, 0))
 
     def ready(self, name):
         """Return True if camera ``name`` may be solved (not recalibrating, or has enough)."""
@@ -230,16 +226,17 @@ class ChangeTracker:
         """Return the cameras withheld until they have enough new observations."""
         return [n for n in self.recalibrating if not self.ready(n)]
 
-    def accepted(self, calibration, arrays):
+    def accepted(self, calibration):
         """
-        After an accepted solve: close the recalibrations it contains; say what changed.
+        After an accepted solve: close the recalibrations it contains; return the sizing jobs.
 
-        A changed camera's new views (in ``arrays``) are refitted against the predictor the
-        change was found with (:func:`~armcal_ros.core.change.size_change`): the size and the
-        kind (pose or lens) are then measured in the old calibration's own frame, free of the
-        drift of the whole solution between the two solves.  The measurement is repeated at
-        every accepted solve while the camera gathers views (up to :data:`SIZING_VIEWS`): a
-        focus change that twenty views cannot tell from a move along the axis may show later.
+        A changed camera's new views are refitted against the predictor the change was found
+        with (:func:`size`): the size and the kind (pose or lens) are then measured in the old
+        calibration's own frame, free of the drift of the whole solution between the two
+        solves.  The measurement is repeated at every accepted solve while the camera gathers
+        views (up to :data:`SIZING_VIEWS`): a focus change that twenty views cannot tell from a
+        move along the axis may show later.  Returns (camera, record, predictor) to size;
+        the refits run outside the engine's lock.
         """
         for name in list(self.recalibrating):
             if name not in calibration.cameras or not self.ready(name):
@@ -249,22 +246,43 @@ class ChangeTracker:
             rec.what = 'camera'
             if model is not None and name in model.cameras:
                 self._sizing[name] = (rec, model, 0)
+        return [(name, rec, model) for name, (rec, model, _) in self._sizing.items()]
+
+    def size(self, jobs, arrays):
+        """
+        Refit each job's camera to its views in ``arrays``; return (camera, record, result).
+
+        ``result`` is (what, fit, views used) or None; :meth:`apply_sizes` records them.
+        """
         points, obs = per_point(arrays)
-        for name, (rec, model, n_done) in list(self._sizing.items()):
+        out = []
+        for name, rec, model in jobs:
             views = [View(0, X, uvs) for X, uvs in zip(points, obs) if name in uvs]
-            if len(views) <= n_done:
-                continue
             try:
-                rec.what, fit = size_change(model, name, views[:SIZING_VIEWS],
-                                            false_alarm=self.settings.false_alarm)
+                what, fit = size_change(model, name, views[:SIZING_VIEWS],
+                                        false_alarm=self.settings.false_alarm)
             except (np.linalg.LinAlgError, ValueError):
+                out.append((name, rec, None))
                 continue
+            out.append((name, rec, (what, fit, len(views))))
+        return out
+
+    def apply_sizes(self, sized):
+        """Record the sizes :meth:`size` measured (for cameras not declared changed since)."""
+        for name, rec, got in sized:
+            current = self._sizing.get(name)
+            if current is None or current[0] is not rec or got is None:
+                continue
+            what, fit, n = got
+            if n <= current[2]:
+                continue
+            rec.what = what
             rec.rotation_deg, rec.translation_mm = fit.rotation_deg, fit.translation_mm
             rec.focal_percent = fit.focal_percent
-            if len(views) >= SIZING_VIEWS:
+            if n >= SIZING_VIEWS:
                 del self._sizing[name]
             else:
-                self._sizing[name] = (rec, model, len(views))
+                self._sizing[name] = (rec, current[1], n)
 
     def withheld(self):
         """Return the cameras whose published calibration no longer holds."""

@@ -255,6 +255,7 @@ class CalibrationEngine:
         self.changes = ChangeTracker(self.settings.change, self.settings.recalibration_samples,
                                      enabled=self.settings.detect_changes and board is None)
         self._change_listeners: List[Callable] = []
+        self._views_counted_at = -1
 
     @property
     def target_estimated(self) -> Optional[bool]:
@@ -377,12 +378,25 @@ class CalibrationEngine:
             return None
         return self.solve()
 
+    def feed(self, samples):
+        """Add ``samples`` in time order as a recording is read, solving as they grow."""
+        for sample in samples:
+            self.add_sample(sample)
+            self.solve_if_grown()
+
     def _recalibration_ready(self):
-        """Return True if a changed camera reached its new observations since the last solve."""
+        """
+        Return True if a changed camera has reached its new views (lock held).
+
+        Counted only when the store has changed since the last count: the node asks this on
+        every solve check.
+        """
         waiting = self.changes.waiting()
         if not waiting:
             return False
-        self.changes.count_new(self.store.arrays(camera_names=list(self.settings.camera_names)))
+        if self._views_counted_at != self.store.revision:
+            self._views_counted_at = self.store.revision
+            self.changes.count_new(self.store.views_per_camera())
         return any(self.changes.ready(n) for n in waiting)
 
     def _kinematics(self, arrays, place=None):
@@ -522,7 +536,7 @@ class CalibrationEngine:
                        if self._current is not None else None)
             prior, searching = self._prior_for_solve(n)
             kin = self._kinematics(arrays)
-            self.changes.count_new(arrays)
+            self.changes.count_new(self.store.views_per_camera())
             waiting = set(self.changes.waiting())
             restarted = {k: v for k, v in self.changes.recalibrating.items()
                          if k not in waiting}
@@ -657,9 +671,11 @@ class CalibrationEngine:
                     blocks[cam] = ([names[i][len(cam) + 1:] for i in idx],
                                    adj.covariance[np.ix_(idx, idx)])
         with self._lock:
-            self.changes.accepted(cal, arrays)
+            jobs = self.changes.accepted(cal)
+        sized = self.changes.size(jobs, arrays)
         monitor = self.changes.build_monitor(cal, arrays, arm, blocks)
         with self._lock:
+            self.changes.apply_sizes(sized)
             old = self.changes.monitor
             # A solve that ran while a camera was drifting off its prediction has absorbed
             # part of the change: keep testing against the calibration that saw it coming.
@@ -878,15 +894,22 @@ class CalibrationEngine:
         Files: samples (the store's format, retired observations included), ``<camera>.yaml``
         and ``extrinsics.yaml`` for the calibrated cameras (not those withheld after a change),
         ``calibration.json`` with the quality figures and ``changes.json`` with the declared
-        changes.  Each file is
-        written atomically.  Returns the list of files written.
+        changes; a withheld camera's earlier ``<camera>.yaml`` is renamed
+        ``<camera>.before_change.yaml``.  Each file is written atomically.  Returns the list of
+        files written.
         """
         os.makedirs(directory, exist_ok=True)
         with self._lock:
             written = [self.store.save(directory), self.changes.save(directory)]
+            gone = self.changes.withheld()
         cal = self.published
         if cal is not None:
             written += write_calibration(directory, cal, self.settings.base_frame)
+        for name in gone:
+            # A driver's camera_info_manager would load the old file as if it still held.
+            old = os.path.join(directory, f'{name}.yaml')
+            if os.path.exists(old):
+                os.replace(old, os.path.join(directory, f'{name}.before_change.yaml'))
         with self._lock:
             T, std, scale = self.T_link_target, self.mount_std, self.target_scale
         if self.target_estimated is not None and T is not None and cal is not None:

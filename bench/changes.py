@@ -75,9 +75,7 @@ def run_engine(sim, samples, detect=True):
                             kinematics_fn=kinematics)
     for c in sim.cameras:
         eng.set_image_size(c.name, c.width, c.height)
-    for s in samples:
-        eng.add_sample(s)
-        eng.solve_if_grown()
+    eng.feed(samples)
     eng.solve()
     return eng
 

@@ -207,7 +207,15 @@ def main(argv=None):
     text = '\n'.join(md)
     print(text)
     write_section('realism', text)
-    write_json('realism', dict(runs=runs, pipeline=pipes, lamp_search=search,
+    summary = [dict(cell=r['cell'], seed=r['seed'], lighting=r['lighting'], cameras={
+        cam: dict(visible=got['visible'], detected=len(got['errors']),
+                  mean_error_px=np.mean(np.reshape(got['errors'], (-1, 2)), axis=0).tolist(),
+                  median_px=float(np.median(np.hypot(*np.reshape(got['errors'], (-1, 2)).T))),
+                  p99_px=float(np.percentile(np.hypot(*np.reshape(got['errors'],
+                                                                  (-1, 2)).T), 99)))
+        for cam, got in r['cameras'].items()}) for r in runs]
+    # Per camera and session, not every frame's error (that was 3 MB).
+    write_json('realism', dict(detection=summary, pipeline=pipes, lamp_search=search,
                                machine=machine()))
     return 0
 

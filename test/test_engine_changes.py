@@ -39,9 +39,7 @@ def _run(sim, samples, **kw):
                                            SolverSettings(), min_samples=20, **kw))
     for c in sim.cameras:
         eng.set_image_size(c.name, c.width, c.height)
-    for s in samples:
-        eng.add_sample(s)
-        eng.solve_if_grown()
+    eng.feed(samples)
     eng.solve()
     return eng
 
@@ -135,3 +133,19 @@ def test_forgetting_retires_views_older_than_the_age_limit():
     assert min(kept) >= newest - 40e9
     assert eng.store.retired and all(e == -1 for e, _ in eng.store.retired)
     assert eng.current is not None and sorted(eng.current.cameras) == ['cam1', 'cam2', 'cam3']
+
+
+def test_a_withheld_camera_leaves_no_calibration_file_a_driver_would_load(knocked, tmp_path):
+    sim, samples, eng, _ = knocked
+    eng.save(str(tmp_path))
+    assert (tmp_path / 'cam2.yaml').exists()
+    rec = eng.changes.records[-1]
+    eng.changes.recalibrating['cam2'] = (rec, None, None)     # as just after a declaration
+    try:
+        eng.save(str(tmp_path))
+    finally:
+        del eng.changes.recalibrating['cam2']
+    assert not (tmp_path / 'cam2.yaml').exists()
+    assert (tmp_path / 'cam2.before_change.yaml').exists()
+    from armcal_ros.io.calib_files import read_cameras
+    assert [c.name for c in read_cameras(str(tmp_path))[1]] == ['cam1', 'cam3']

@@ -11,27 +11,18 @@ image decoding is off by far more.  On the linkage-error cells the kinematic mod
 beat the ``fixed`` baseline on the same samples, which is what they are for.
 """
 import json
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
 from armcal_ros.compare import compare
 from armcal_ros.io.calib_files import read_cameras
+from helpers.cli import armcal
 from armcal_ros.sim.cells import CELLS
 
 
-def _armcal(*args):
-    proc = subprocess.run([sys.executable, '-m', 'armcal_ros.cli', *map(str, args)],
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    return proc.stdout
-
-
 def _calibrate(bag, out, model):
-    _armcal('calibrate', bag, '--params', bag / 'ground_truth' / 'params.yaml', '--output', out,
-            '--noise-model', model, '--quiet')
+    armcal('calibrate', bag, '--params', bag / 'ground_truth' / 'params.yaml', '--output', out,
+           '--noise-model', model, '--quiet')
     _, cams = read_cameras(out)
     est = {c.name: c for c in cams}
     return est, compare(est, bag / 'ground_truth'), json.loads((out / 'report.json').read_text())
@@ -42,8 +33,8 @@ def _calibrate(bag, out, model):
                                            ('puma-1cam-glints', 60)])
 def test_calibrates_a_cell_it_was_not_developed_on(tmp_path, cell, duration):
     bag = tmp_path / 'bag'
-    _armcal('simulate', '--cell', cell, '--output', bag, '--duration', duration, '--seed', 1,
-            '--quiet')
+    armcal('simulate', '--cell', cell, '--output', bag, '--duration', duration, '--seed', 1,
+           '--quiet')
     names = list(CELLS[cell].sim_settings().camera_names)
     est, score, report = _calibrate(bag, tmp_path / 'auto', 'auto')
     assert sorted(est) == sorted(names) and report['accepted']

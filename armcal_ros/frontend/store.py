@@ -134,6 +134,14 @@ class SampleStore:
                     names.append(name)
         return tuple(names)
 
+    def views_per_camera(self):
+        """Return camera name -> the number of stored samples that camera saw."""
+        out = {}
+        for smp in self._samples:
+            for name in smp.observations:
+                out[name] = out.get(name, 0) + 1
+        return out
+
     def clear(self):
         """Remove every sample (ids keep increasing)."""
         self._samples = []

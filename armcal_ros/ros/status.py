@@ -153,12 +153,10 @@ def camera_status(name, s: NodeState, node_name='armcal') -> Status:
         values['last_change'] = mine[-1].summary(s.start_ns)
         values['changes'] = len(mine)
     if name in s.withheld:
-        rec = mine[-1] if mine else None
-        got = rec.new_observations if rec is not None else 0
-        return Status(WARN, f'{node_name}: {name}',
-                      (rec.summary(s.start_ns) if rec is not None else 'changed') +
-                      f' ({got} of {s.recalibration_samples} new views); its calibration is '
-                      'withheld', name, {k: _fmt(v) for k, v in values.items()})
+        said = (mine[-1].summary(s.start_ns, s.recalibration_samples) if mine
+                else f'{name} changed')
+        return Status(WARN, f'{node_name}: {name}', said + '; its calibration is withheld',
+                      name, {k: _fmt(v) for k, v in values.items()})
     if c is None:
         return Status(WARN, f'{node_name}: {name}', 'not calibrated yet', name,
                       {k: _fmt(v) for k, v in values.items()})
