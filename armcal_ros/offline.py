@@ -276,17 +276,10 @@ def collect_samples(source, settings: Settings, progress: Callable[[int, int], N
         progress(rec.total, rec.total)
     for r in engine.changes.records:
         if log:
-            log(r.summary(_first_stamp(store)))
+            log(r.summary(store.first_stamp_ns()))
     return FrontEnd(pipe.chain, engine.settings.board, store, dict(collector.image_sizes),
                     dict(collector.counts), rec.warnings, added, n, time.perf_counter() - t0,
                     rec.info, rec.intrinsics, engine.changes if follow else None, solves)
-
-
-def _first_stamp(store):
-    """Return the earliest observation stamp in ``store`` (retired ones included), or 0."""
-    stamps = [o.stamp_ns for smp in store.samples for o in smp.observations.values()]
-    stamps += [o.stamp_ns for _, smp in store.retired for o in smp.observations.values()]
-    return min(stamps) if stamps else 0
 
 
 def solve_and_write(front: FrontEnd, settings: Settings, output_dir) -> OfflineResult:
@@ -377,7 +370,7 @@ def _changes_report(engine, front):
     """Return the report's account of change detection (None when it was off)."""
     if front.changes is None:
         return None
-    start = _first_stamp(front.store)
+    start = front.store.first_stamp_ns()
     return dict(
         epochs=engine.changes.epoch + 1, solves_while_reading=front.monitor_solves,
         withheld=engine.withheld(),

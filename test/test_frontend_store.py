@@ -241,7 +241,10 @@ def test_retired_observations_leave_the_solver_view_and_survive_a_restart(tmp_pa
                          stamp_ns=100 * k))
     store.add(Sample(point_nominal=[0, 0.5, 0], observations={'cam2': obs(stamp=50)},
                      stamp_ns=50))
+    assert store.first_stamp_ns() == 0
     assert store.retire(300, epoch=1, camera='cam2') == 4       # stamps 0, 50, 100, 200
+    assert store.first_stamp_ns() == 0                          # a retired view still counts
+    assert store.views_per_camera() == {'cam1': 6, 'cam2': 3}
     arrays = store.arrays(['cam1', 'cam2'])
     assert len(store) == 6                   # the cam2-only sample went with its observation
     assert sum(arrays.camera_index == 1) == 3 and sum(arrays.camera_index == 0) == 6

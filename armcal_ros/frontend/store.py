@@ -112,6 +112,7 @@ class SampleStore:
         self.evicted = 0
         #: (epoch, sample) of observations retired by a change (:meth:`retire`).
         self.retired: List[Tuple[int, Sample]] = []
+        self._first_stamp = (-1, 0)              # (revision, stamp) of first_stamp_ns
 
     def __len__(self):
         return len(self._samples)
@@ -133,6 +134,14 @@ class SampleStore:
                 if name not in names:
                     names.append(name)
         return tuple(names)
+
+    def first_stamp_ns(self):
+        """Return the earliest observation stamp held, retired ones included (0: none)."""
+        if self._first_stamp[0] != self.revision:
+            stamps = [o.stamp_ns for smp in self._samples for o in smp.observations.values()]
+            stamps += [o.stamp_ns for _, smp in self.retired for o in smp.observations.values()]
+            self._first_stamp = (self.revision, min(stamps) if stamps else 0)
+        return self._first_stamp[1]
 
     def views_per_camera(self):
         """Return camera name -> the number of stored samples that camera saw."""

@@ -467,7 +467,7 @@ class CalibratorNode(Node):
     def _on_change(self, record):
         """Engine callback (the worker thread): say it, withdraw a changed camera's calibration."""
         try:
-            start = self._first_stamp()
+            start = self.engine.store.first_stamp_ns()
             if record.kind == 'disagreement':
                 # It may repeat for as long as bad detections last: once per 10 s.
                 self.get_logger().warning(record.summary(start), throttle_duration_sec=10.0)
@@ -484,12 +484,6 @@ class CalibratorNode(Node):
         except Exception as exc:  # noqa: B902 - reporting must not kill the worker thread
             if not self._closing:
                 self.get_logger().error(f'cannot report a change: {type(exc).__name__}: {exc}')
-
-    def _first_stamp(self):
-        st = self.engine.store
-        stamps = [o.stamp_ns for smp in st.samples for o in smp.observations.values()]
-        stamps += [o.stamp_ns for _, smp in st.retired for o in smp.observations.values()]
-        return min(stamps) if stamps else 0
 
     def _handle_outcome(self, outcome):
         self._last_outcome_wall = time.time()
@@ -685,7 +679,7 @@ class CalibratorNode(Node):
             last_outcome_wall=self._last_outcome_wall, input_counts=dict(self._counts),
             queue_dropped=dict(self.queue.dropped), queue_depth=self.queue.depth(),
             restored=self._restored, changes=list(e.changes.records),
-            withheld=e.withheld(), start_ns=self._first_stamp(),
+            withheld=e.withheld(), start_ns=self.engine.store.first_stamp_ns(),
             recalibration_samples=e.settings.recalibration_samples)
 
     def _publish_diagnostics(self):
