@@ -51,6 +51,9 @@ def _add_simulate(p):
     p.add_argument('--ambient', type=float, default=0.25,
                    help='with --lamp: the fraction of the full brightness the ball\'s unlit '
                         'side keeps (default 0.25)')
+    p.add_argument('--frame-id-format', default='{camera}_optical_frame',
+                   help='the images\' header.frame_id, {camera} standing for the camera\'s name '
+                        '(e.g. {camera}_color_optical_frame as a RealSense driver names it)')
     p.add_argument('--quiet', action='store_true')
 
 
@@ -96,6 +99,14 @@ def _run_simulate(args):
         raise ValueError(f'--output {args.output} exists already; choose a new bag directory')
     if args.duration <= 2.0:
         raise ValueError(f'--duration must be > 2 s, got {args.duration}')
+    try:
+        args.frame_id_format.format(camera='cam')
+        ok = '{camera}' in args.frame_id_format
+    except (KeyError, IndexError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f'--frame-id-format must contain {{camera}} and no other field, got '
+                         f'{args.frame_id_format!r}')
     cell = get_cell(args.cell)
     scenario = args.scenario or cell.scenario
     compressed = cell.compressed if args.compressed is None else \
@@ -118,7 +129,8 @@ def _run_simulate(args):
 
     counts = write_sim_bag(result, args.output, storage=args.storage,
                            compressed=compressed, encoding=encoding,
-                           compress=not args.no_zstd, progress=progress)
+                           compress=not args.no_zstd, progress=progress,
+                           frame_id_format=args.frame_id_format)
     params = os.path.join(args.output, 'ground_truth', 'params.yaml')
     with open(params, 'w', encoding='utf-8') as f:
         f.write(f'# calibrator parameters for this simulated cell ({args.cell}):\n'

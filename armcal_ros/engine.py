@@ -56,6 +56,7 @@ from armcal_ros.core.results import Calibration, calibration_from_result
 from armcal_ros.core.target import invert, pose_vector
 from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.frontend.store import SampleStore
+from armcal_ros.io.calib_files import read_extrinsics
 from armcal_ros.io.results_files import (CALIBRATION_FILE, load_calibration,
                                          read_target_scale, read_target_yaml, TARGET_FILE,
                                          write_calibration, write_target)
@@ -233,6 +234,9 @@ class CalibrationEngine:
         self.store = store if store is not None else SampleStore()
         self.clock = clock
         self.image_sizes: Dict[str, tuple] = {}
+        #: Camera name -> the frame_id its images carry (set by whoever reads the images);
+        #: the optical frame every output names.  See :meth:`frame_id`.
+        self.frame_ids: Dict[str, str] = {}
         self._lock = threading.RLock()
         self._current: Optional[Calibration] = None
         self._last_solve_start = -np.inf
@@ -879,6 +883,10 @@ class CalibrationEngine:
             self._worker.start()
             return True
 
+    def frame_id(self, camera) -> str:
+        """Return ``camera``'s optical frame: its images' frame_id, else <camera>_optical_frame."""
+        return self.frame_ids.get(camera) or f'{camera}_optical_frame'
+
     def wait(self, timeout=None):
         """Wait for a running background solve; return True if none is running afterwards."""
         w = self._worker
@@ -904,7 +912,8 @@ class CalibrationEngine:
             gone = self.changes.withheld()
         cal = self.published
         if cal is not None:
-            written += write_calibration(directory, cal, self.settings.base_frame)
+            written += write_calibration(directory, cal, self.settings.base_frame,
+                                         dict(self.frame_ids))
         for name in gone:
             # A driver's camera_info_manager would load the old file as if it still held.
             old = os.path.join(directory, f'{name}.yaml')
@@ -943,7 +952,10 @@ class CalibrationEngine:
         cal_file = os.path.join(directory, CALIBRATION_FILE)
         if os.path.exists(cal_file):
             cal = load_calibration(directory)
+            _, poses = read_extrinsics(os.path.join(directory, 'extrinsics.yaml'))
             with self._lock:
+                for name, (_, _, frame) in poses.items():
+                    self.frame_ids.setdefault(name, frame)
                 self._current = cal
                 for name, c in cal.cameras.items():
                     if name in self.settings.camera_names:

@@ -97,6 +97,8 @@ class FrontEnd:
     #: What change detection found reading the recording in time order (None: not run).
     changes: Optional[ChangeTracker] = None
     monitor_solves: int = 0
+    #: Camera name -> the frame_id of its first image (the optical frame the outputs name).
+    frame_ids: Dict[str, str] = field(default_factory=dict)
 
 
 @dataclass
@@ -264,10 +266,16 @@ def collect_samples(source, settings: Settings, progress: Callable[[int, int], N
         if engine.solve_if_grown() is not None:
             solves += 1
 
+    frame_ids = {}
     for event in rec.events():
         n += 1
         if progress and n % 500 == 0:
             progress(n, rec.total)
+        if event[0] == 'image' and event[1] not in frame_ids:
+            frame = getattr(getattr(event[3], 'header', None), 'frame_id', '')
+            if isinstance(frame, str) and frame:
+                frame_ids[event[1]] = frame
+                engine.frame_ids[event[1]] = frame
         for s in feed(collector, event):
             add(s)
     for s in collector.flush():
@@ -279,7 +287,8 @@ def collect_samples(source, settings: Settings, progress: Callable[[int, int], N
             log(r.summary(store.first_stamp_ns()))
     return FrontEnd(pipe.chain, engine.settings.board, store, dict(collector.image_sizes),
                     dict(collector.counts), rec.warnings, added, n, time.perf_counter() - t0,
-                    rec.info, rec.intrinsics, engine.changes if follow else None, solves)
+                    rec.info, rec.intrinsics, engine.changes if follow else None, solves,
+                    frame_ids)
 
 
 def solve_and_write(front: FrontEnd, settings: Settings, output_dir) -> OfflineResult:
@@ -294,6 +303,7 @@ def solve_and_write(front: FrontEnd, settings: Settings, output_dir) -> OfflineR
     except ValueError as exc:
         raise CalibrateError(str(exc)) from exc
     engine.store = front.store
+    engine.frame_ids.update(front.frame_ids)
     if front.changes is not None:
         engine.changes = copy.deepcopy(front.changes)
         engine.changes.monitor = None
@@ -309,7 +319,8 @@ def solve_and_write(front: FrontEnd, settings: Settings, output_dir) -> OfflineR
     files = engine.save(output_dir)
     for epoch, cal in sorted(engine.changes.epoch_calibrations.items()):
         files += [str(f) for f in write_calibration(
-            os.path.join(output_dir, 'epochs', f'epoch_{epoch}'), cal, engine.settings.base_frame)]
+            os.path.join(output_dir, 'epochs', f'epoch_{epoch}'), cal, engine.settings.base_frame,
+            dict(engine.frame_ids))]
     path = os.path.join(output_dir, 'report.json')
     atomic_write_text(path, json.dumps(report, indent=1))
     files.append(path)

@@ -77,6 +77,18 @@ def _camera_names(v):
     return None
 
 
+def _camera_info_names(v):
+    if not v:
+        return None
+    bad = [n for n in v if not NAME_RE.match(n)]
+    if bad:
+        return (f'names must use [A-Za-z0-9_] only (camera_info_manager refuses others), '
+                f'bad: {bad}')
+    if len(set(v)) != len(v):
+        return f'has duplicate names: {v}'
+    return None
+
+
 def _topics(v):
     bad = [t for t in v if not t or ' ' in t]
     return f'has empty or malformed topic names: {bad}' if bad else None
@@ -195,7 +207,24 @@ PARAMS = [
           'of four corners on marker_link (its pose there given by target_pose_guess or '
           'estimated with estimate_marker_offset); 0: the tag\'s centre as a point marker',
           _nonneg, minimum=0.0),
-    Param('publish_tf', 'bool', True, 'publish static TF base_frame -> <camera>_optical_frame'),
+    Param('publish_tf', 'bool', True,
+          'publish static TF base_frame -> each camera\'s optical frame (the frame_id its '
+          'images carry; <camera>_optical_frame until one has arrived)'),
+    Param('write_camera_info', 'bool', True,
+          'the node also writes each calibrated camera\'s YAML where camera_info_manager looks '
+          'by default (camera_info_dir/<camera_info_name>.yaml), so a driver started later '
+          'loads it; a file found there that armcal did not write is kept once as '
+          '<name>.before_armcal.yaml'),
+    Param('camera_info_dir', 'string', '',
+          'directory of those files (empty: $ROS_HOME/camera_info, camera_info_manager\'s '
+          'default; ROS_HOME defaulting to ~/.ros)'),
+    Param('camera_info_names', 'string[]', [],
+          'one per camera: the camera_name its driver gives camera_info_manager (file '
+          'name and camera_name in the YAML); empty: the camera names', _camera_info_names),
+    Param('republish_images', 'bool', False,
+          'republish each image under the node\'s namespace (~/<camera>/image_raw, or '
+          '~/<camera>/image_raw/compressed) beside its CameraInfo, for consumers that want '
+          'both from one place (an image_transport camera subscriber, image_proc)'),
     Param('set_camera_info_services', 'string[]', [],
           'if not empty, one sensor_msgs/srv/SetCameraInfo service per camera to commit each '
           'accepted calibration to its driver (e.g. /cam1/set_camera_info)'),
@@ -335,6 +364,10 @@ def check_all(values: Dict[str, Any], require_robot_model=True):
     if svc and len(svc) != len(cams):
         raise ValueError(f'parameter set_camera_info_services must be empty or have one entry '
                          f'per camera ({len(cams)}), got {len(svc)}')
+    names = values['camera_info_names']
+    if names and len(names) != len(cams):
+        raise ValueError(f'parameter camera_info_names must be empty or have one entry per '
+                         f'camera ({len(cams)}), got {len(names)}')
     if values['sphere_min_radius_px'] >= values['sphere_max_radius_px']:
         raise ValueError('parameters sphere_min_radius_px must be < sphere_max_radius_px')
     model = values['noise_model']
@@ -458,5 +491,14 @@ def default_output_dir(node_name=NODE_NAME):
     Per node name, so that two calibrators of one cell (static cameras and cameras on the arm)
     never share a samples file.
     """
-    home = os.environ.get('ROS_HOME') or os.path.join(os.path.expanduser('~'), '.ros')
-    return os.path.join(home, node_name)
+    return os.path.join(ros_home(), node_name)
+
+
+def ros_home():
+    """Return $ROS_HOME, defaulting to ~/.ros as rcutils and camera_info_manager do."""
+    return os.environ.get('ROS_HOME') or os.path.join(os.path.expanduser('~'), '.ros')
+
+
+def default_camera_info_dir():
+    """Return $ROS_HOME/camera_info: where camera_info_manager's default URL points."""
+    return os.path.join(ros_home(), 'camera_info')

@@ -23,7 +23,8 @@ part           parameters
                intrinsics read from intrinsics_files
 ``schedule``   min_samples, solve_period, min_new_samples, detect_changes, change_false_alarm,
                recalibration_samples, max_sample_age
-``outputs``    output_dir, publish_tf, set_camera_info_services, resume
+``outputs``    output_dir, publish_tf, set_camera_info_services, resume, write_camera_info,
+               camera_info_dir, camera_info_names, republish_images
 ``intrinsics`` intrinsics_mode, intrinsics_sigma_px, intrinsics_sigma_dist, the CameraInfo
                topics of the given cameras without a file
 =============  ===========================================================================
@@ -40,8 +41,8 @@ from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
 from armcal_ros.core.priors import PriorSettings
 from armcal_ros.io.calib_files import read_camera_info
 from armcal_ros.io.message_fields import camera_info_topic
-from armcal_ros.params import (check_all, check_value, default_output_dir, load_params_file,
-                               NODE_NAME)
+from armcal_ros.params import (check_all, check_value, default_camera_info_dir,
+                               default_output_dir, load_params_file, NODE_NAME)
 
 
 @dataclass(frozen=True)
@@ -232,6 +233,11 @@ class OutputSettings:
     publish_tf: bool = True
     set_camera_info_services: Tuple[str, ...] = ()
     resume: bool = True
+    #: Where the node writes each camera's YAML for the drivers (None: not written), and the
+    #: driver's name of each camera (camera name -> camera_info_manager's camera_name).
+    camera_info_dir: Optional[str] = None
+    camera_info_names: Tuple[Tuple[str, str], ...] = ()
+    republish_images: bool = False
 
 
 @dataclass(frozen=True)
@@ -368,8 +374,13 @@ def settings_from_values(values: Dict[str, Any], require_robot_model=True,
         schedule=ScheduleSettings(v['min_samples'], v['solve_period'], v['min_new_samples'],
                                   v['detect_changes'], v['change_false_alarm'],
                                   v['recalibration_samples'], v['max_sample_age']),
-        outputs=OutputSettings(v['output_dir'] or default_output_dir(node_name), v['publish_tf'],
-                               tuple(v['set_camera_info_services']), v['resume']),
+        outputs=OutputSettings(
+            v['output_dir'] or default_output_dir(node_name), v['publish_tf'],
+            tuple(v['set_camera_info_services']), v['resume'],
+            (v['camera_info_dir'] or default_camera_info_dir()) if v['write_camera_info']
+            else None,
+            tuple(zip(v['camera_names'], v['camera_info_names'] or v['camera_names'])),
+            v['republish_images']),
         intrinsics=intrinsics_settings(v))
 
 

@@ -16,8 +16,14 @@ script replays the bag in-process (armcal_ros.ros.replay, reliable publishers) a
   highest rate among --rates with none lost.  (Counting samples instead would hide losses: a
   dwell split by a lost joint state gives two samples that the store merges.)
 
+- CameraInfo beside the images: for every image the replay published after a camera's first
+  calibration, whether a CameraInfo with the image's stamp arrived on ~/<camera>/camera_info
+  (what an exact-time synchronizer needs), and the latency image published -> its CameraInfo
+  received;
+- shutdown: SIGINT -> the node process gone, seconds (samples saved on the way).
+
 The first rate is also run with solves disabled (min_samples 100000), to separate the front
-end's CPU from the solver's.
+end's CPU from the solver's, and the second rate with ``republish_images`` on.
 
 Usage: python bench/node.py [--bag bags/demo] [--params config/demo.yaml] [--rates 1 2 4 8]
 Writes docs/BENCHMARKS.md (section "node") and docs/bench/node.json.  The first rate is the one
@@ -45,6 +51,10 @@ from armcal_ros.compose import build_pipeline  # noqa: E402
 from armcal_ros.io.message_fields import stamp_ns  # noqa: E402
 from armcal_ros.offline import feed, open_bag  # noqa: E402
 from armcal_ros.settings import load_settings  # noqa: E402
+
+
+#: The bag's image topics, in the order of the cameras (set by main()).
+image_topics = []
 
 
 def offline_samples(bag, settings):
@@ -99,14 +109,17 @@ class CpuSampler(threading.Thread):
         return float((s[-1, 1] - s[0, 1]) / (s[-1, 0] - s[0, 0]) * 100.0), float(rates.max())
 
 
-def run_rate(bag, params, rate, gt, out_dir, env, extra=()):
+def run_rate(bag, params, rate, gt, out_dir, env, cameras, extra=()):
     """Start a node (``extra``: -p overrides), replay at ``rate``, return the measurements."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PointStamped
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile
+    from sensor_msgs.msg import CameraInfo
 
     from armcal_ros.ros.conversions import diagnostic_values
+    from armcal_ros.ros.raw_message import header_fields
     from armcal_ros.ros.replay import replay
 
     node_proc = subprocess.Popen(
@@ -128,16 +141,30 @@ def run_rate(bag, params, rate, gt, out_dir, env, extra=()):
             diag.clear()
             diag.update(v)
     node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
+    infos = {c: [] for c in cameras}         # (wall time received, header stamp ns)
+
+    def on_info(cam):
+        def cb(raw):
+            sec, nsec, _ = header_fields(raw)
+            infos[cam].append((time.time(), sec * 1_000_000_000 + nsec))
+        return cb
+    for cam in cameras:
+        node.create_subscription(CameraInfo, f'/armcal/{cam}/camera_info', on_info(cam),
+                                 QoSProfile(depth=500), raw=True)
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
     spin = threading.Thread(target=executor.spin, daemon=True)
     spin.start()
     published = {}               # image header stamp -> publish wall time
+    by_camera = {c: [] for c in cameras}         # camera -> [(publish wall, stamp)]
+    topic_camera = dict(zip(image_topics, cameras))
 
     def on_publish(topic, t_ns, wall, msg):
         if topic != '/joint_states':
             published[stamp_ns(msg.header.stamp)] = max(published.get(
                 stamp_ns(msg.header.stamp), 0.0), wall)
+            if topic in topic_camera:
+                by_camera[topic_camera[topic]].append((wall, stamp_ns(msg.header.stamp)))
     cpu = CpuSampler(node_proc.pid)
     try:
         deadline = time.monotonic() + 60
@@ -155,11 +182,13 @@ def run_rate(bag, params, rate, gt, out_dir, env, extra=()):
         final = dict(diag)
     finally:
         cpu.stop.set()
+        t_sig = time.monotonic()
         node_proc.send_signal(signal.SIGINT)
         try:
             node_proc.wait(30)
         except subprocess.TimeoutExpired:
             node_proc.kill()
+        shutdown_s = time.monotonic() - t_sig
         executor.shutdown()
         spin.join(10)
         node.destroy_node()
@@ -179,6 +208,20 @@ def run_rate(bag, params, rate, gt, out_dir, env, extra=()):
             lat.append(wall - published[int(inside[-1])])
     dropped = {k[len('queue_dropped_'):]: int(v) for k, v in final.items()
                if k.startswith('queue_dropped_')}
+    # CameraInfo beside every image, from each camera's first calibration on
+    info_paired = info_images = 0
+    info_lat = []
+    for cam in cameras:
+        got = {st: wall for wall, st in infos[cam]}
+        sent = by_camera[cam]
+        first = next((k for k, (_, st) in enumerate(sent) if st in got), None)
+        if first is None:
+            continue
+        for wall, st in sent[first:]:
+            info_images += 1
+            if st in got:
+                info_paired += 1
+                info_lat.append(got[st] - wall)
     return dict(rate=rate, wall_s=stats.wall_s, bag_s=stats.bag_s, max_lag_s=stats.max_lag_s,
                 cpu_avg=cpu_avg, cpu_peak=cpu_peak, samples_produced=produced,
                 samples_stored=int(final.get('samples', 0)),
@@ -187,14 +230,16 @@ def run_rate(bag, params, rate, gt, out_dir, env, extra=()):
                 published=stats.published, queue_dropped=dropped,
                 solves=int(final.get('solves', 0)), extra=list(extra),
                 covered=sorted(dwells_covered([st for _, st in samples], gt)),
-                latency_s=[float(x) for x in lat])
+                latency_s=[float(x) for x in lat], info_images=info_images,
+                info_paired=info_paired, info_latency_s=[float(x) for x in info_lat],
+                shutdown_s=shutdown_s)
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--bag', default=os.path.join(ROOT, 'bags', 'demo'))
     ap.add_argument('--params', default=os.path.join(ROOT, 'config', 'demo.yaml'))
-    ap.add_argument('--rates', type=float, nargs='+', default=[1.0, 2.0, 4.0, 8.0])
+    ap.add_argument('--rates', type=float, nargs='+', default=[1.0, 2.0, 4.0])
     ap.add_argument('--no-write', action='store_true', help='print only')
     args = ap.parse_args()
     env = dict(os.environ, ROS_DOMAIN_ID=str(1 + os.getpid() % 200),
@@ -212,17 +257,22 @@ def main():
     print(f'offline front end: {len(ref_stamps)} samples covering {reference} of '
           f'{len(gt["dwell_start_ns"])} dwells ({time.perf_counter() - t:.0f} s)', flush=True)
     runs = []
-    configs = [(args.rates[0], ['min_samples:=100000'])] + [(r, []) for r in args.rates]
+    configs = ([(args.rates[0], ['min_samples:=100000'])] + [(r, []) for r in args.rates]
+               + [(args.rates[min(1, len(args.rates) - 1)], ['republish_images:=true'])])
+    cameras = list(settings.inputs.camera_names)
+    image_topics[:] = list(settings.inputs.image_topics)
     for i, (rate, extra) in enumerate(configs):
         out = os.path.join(tmp, f'run_{i}')
         os.makedirs(out)
-        r = run_rate(args.bag, args.params, rate, gt, out, env, extra)
+        r = run_rate(args.bag, args.params, rate, gt, out, env, cameras, extra)
         r['lost'] = len(ref_dwells - set(r['covered']))
         lat = np.array(r['latency_s'])
         print(f'rate {rate:g}x {extra}: cpu avg {r["cpu_avg"]:.0f} % peak {r["cpu_peak"]:.0f} %, '
               f'dwells lost {r["lost"]}/{reference}, latency median '
               f'{np.median(lat) if len(lat) else float("nan"):.3f} s, '
-              f'dropped {r["queue_dropped"]}, replay lag {r["max_lag_s"]:.2f} s', flush=True)
+              f'dropped {r["queue_dropped"]}, replay lag {r["max_lag_s"]:.2f} s, CameraInfo '
+              f'{r["info_paired"]}/{r["info_images"]}, shutdown {r["shutdown_s"]:.2f} s',
+              flush=True)
         runs.append(r)
     ok = [r['rate'] for r in runs if r['lost'] <= 0 and not r['extra']]
     best = max(ok) if ok else None
@@ -234,13 +284,19 @@ def main():
         la = np.array(r['latency_s'])
         js_sent = r['published'].get(settings.inputs.joint_states_topic, 0)
         img_sent = sum(v for k, v in r['published'].items() if k in settings.inputs.image_topics)
-        label = f'{r["rate"]:g}x' + (' (no solves)' if r['extra'] else '')
+        label = f'{r["rate"]:g}x' + (' (no solves)' if 'min_samples:=100000' in r['extra']
+                                     else ' (republish_images)' if r['extra'] else '')
+        il = np.array(r['info_latency_s'])
         rows.append([label, f'{r["wall_s"]:.0f}', f'{r["cpu_avg"]:.0f}',
                      f'{r["cpu_peak"]:.0f}', f'{r["joint_states"]}/{js_sent}',
                      f'{r["frames"]}/{img_sent}', f'{reference - r["lost"]}/{reference}',
                      sum(r['queue_dropped'].values()),
                      f'{np.median(la):.3f}' if len(la) else '-',
-                     f'{np.percentile(la, 95):.3f}' if len(la) else '-', r['solves']])
+                     f'{np.percentile(la, 95):.3f}' if len(la) else '-', r['solves'],
+                     f'{r["info_paired"]}/{r["info_images"]}',
+                     f'{np.median(il) * 1e3:.1f}' if len(il) else '-',
+                     f'{np.percentile(il, 95) * 1e3:.1f}' if len(il) else '-',
+                     f'{r["shutdown_s"]:.2f}'])
     text = '\n'.join([
         '## Live node (bench/node.py)',
         '',
@@ -251,11 +307,16 @@ def main():
         f'in the node / with one offline (same front end and store fed in bag order). Latency: '
         f'last image '
         f'of a dwell published -> its sample received on `~/samples`, seconds. Machine: '
-        f'{machine()}; other jobs shared the two cores, so CPU and losses are upper bounds.',
+        f'{machine()}; other jobs shared the two cores, so CPU and losses are upper bounds. '
+        f'Images with their CameraInfo: images the replay published after the camera\'s first '
+        f'calibration / those for which a CameraInfo with the image\'s stamp arrived (the node '
+        f'publishes one per image it receives); its latency: image published -> CameraInfo '
+        f'received here.',
         '',
         table(['rate', 'wall s', 'CPU avg %', 'CPU peak %', 'joint states recv/sent',
                'images recv/sent', 'dwells', 'queue drops', 'latency median s',
-               'latency p95 s', 'solves'], rows),
+               'latency p95 s', 'solves', 'images with their CameraInfo',
+               'CameraInfo latency median ms', 'p95 ms', 'SIGINT -> exit s'], rows),
         '',
         f'At {first["rate"]:g}x: average CPU {first["cpu_avg"]:.0f} % of one core (target under '
         f'50 %), peak {first["cpu_peak"]:.0f} %; without solves (front end and ROS I/O only) '

@@ -64,3 +64,27 @@ def test_target_yaml_round_trip_and_errors(tmp_path):
     (tmp_path / 'bad.yaml').write_text('translation: [0, 0]\n')
     with pytest.raises(ValueError, match='bad.yaml: cannot read the target pose'):
         read_target_yaml(str(tmp_path / 'bad.yaml'))
+
+
+def test_driver_file_keeps_a_foreign_calibration_once_and_replaces_its_own(tmp_path):
+    from armcal_ros.io.calib_files import read_camera_info
+    from armcal_ros.io.results_files import DRIVER_FILE_MARK, write_driver_camera_info
+    cam = Camera.look_at('cam1', 640, 480, 801.5, 799.25, 322.1, 236.7,
+                         [-0.151, 0.049, 3e-4, -2e-4, 0.001], eye=[1.2, -0.9, 0.8],
+                         target=[0.4, 0.1, 0.2])
+    foreign = tmp_path / 'front_rgb.yaml'
+    foreign.write_text('# from a checkerboard run\nimage_width: 640\n')
+    path, kept = write_driver_camera_info(tmp_path, cam, 'front_rgb')
+    assert kept == str(tmp_path / 'front_rgb.before_armcal.yaml')
+    assert (tmp_path / 'front_rgb.before_armcal.yaml').read_text().startswith('# from a')
+    assert (tmp_path / 'front_rgb.yaml').read_text().splitlines()[0] == DRIVER_FILE_MARK
+    back = read_camera_info(path)
+    assert back.name == 'front_rgb'
+    np.testing.assert_allclose(back.K, cam.K)
+    # Its own file is replaced without another copy; a kept file is never overwritten.
+    cam.fx = 805.0
+    path, kept = write_driver_camera_info(tmp_path, cam, 'front_rgb')
+    assert kept is None and read_camera_info(path).fx == 805.0
+    assert (tmp_path / 'front_rgb.before_armcal.yaml').read_text().startswith('# from a')
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['front_rgb.before_armcal.yaml',
+                                                          'front_rgb.yaml']

@@ -98,31 +98,30 @@ def test_runtime_parameter_sets_are_checked(ros_context, tmp_path):
         node.destroy_node()
 
 
-def test_static_tf_through_tf2_ros_when_importable(ros_context, tmp_path, monkeypatch):
+def test_static_tf_as_tf2_msgs_and_one_warning_without_it(ros_context, tmp_path, monkeypatch):
     import sys
-    import types
+    from types import SimpleNamespace
 
     from armcal_ros.ros.node import CalibratorNode
-    sent = []
-
-    class Broadcaster:
-        def __init__(self, node):
-            self.node = node
-
-        def sendTransform(self, transforms):
-            sent.extend(transforms)
     node = CalibratorNode(context=ros_context, parameter_overrides=_overrides(tmp_path))
+    sent = []
+    monkeypatch.setattr(node, '_publish', lambda pub, msg: sent.append((pub, msg)))
+    cal = SimpleNamespace(cameras={'cam1': SimpleNamespace(camera=camera())})
     try:
-        monkeypatch.setitem(sys.modules, 'tf2_ros', None)      # import fails: one warning
-        node._publish_tf([camera()], conv.time_msg(0))
-        node._publish_tf([camera()], conv.time_msg(0))
+        monkeypatch.setitem(sys.modules, 'tf2_msgs.msg', None)      # import fails: one warning
+        node._publish_tf(cal, conv.time_msg(0))
+        node._publish_tf(cal, conv.time_msg(0))
         assert node._tf_warned and not sent
-        monkeypatch.setitem(sys.modules, 'tf2_ros',
-                            types.SimpleNamespace(StaticTransformBroadcaster=Broadcaster))
-        node._publish_tf([camera()], conv.time_msg(0))
-        assert [(t.header.frame_id, t.child_frame_id) for t in sent] == \
-            [('base_link', 'cam1_optical_frame')]
-        assert sent[0].transform.translation.x == pytest.approx(camera().center[0])
+        monkeypatch.delitem(sys.modules, 'tf2_msgs.msg')
+        pytest.importorskip('tf2_msgs.msg', reason='tf2_msgs not built (Makefile)')
+        node.engine.frame_ids['cam1'] = 'cam1_color_optical_frame'
+        node._publish_tf(cal, conv.time_msg(0))
+        (pub, msg), = sent
+        assert pub.topic_name == '/tf_static'
+        assert type(msg).__module__.startswith('tf2_msgs.msg')
+        assert [(t.header.frame_id, t.child_frame_id) for t in msg.transforms] == \
+            [('base_link', 'cam1_color_optical_frame')]
+        assert msg.transforms[0].transform.translation.x == pytest.approx(camera().center[0])
     finally:
         node.close(solve_timeout=1.0)
         node.destroy_node()

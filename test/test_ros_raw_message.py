@@ -6,7 +6,7 @@ from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CompressedImage, Image
 
 from armcal_ros.frontend.image_decode import decode_image_msg
-from armcal_ros.ros.raw_message import header_stamp_ns, LazyMessage
+from armcal_ros.ros.raw_message import header_fields, header_stamp_ns, LazyMessage
 
 
 def _image(sec, nanosec, frame_id='cam0_optical_frame'):
@@ -21,6 +21,22 @@ def _image(sec, nanosec, frame_id='cam0_optical_frame'):
 def test_stamp_from_bytes_equals_the_header(sec, nanosec):
     raw = serialize_message(_image(sec, nanosec))
     assert header_stamp_ns(raw) == sec * 1_000_000_000 + nanosec
+
+
+@pytest.mark.parametrize('frame_id', ['', 'c', 'camera1_color_optical_frame', 'x' * 300,
+                                      'kamera_\u00f6'])
+@pytest.mark.parametrize('mtype', [Image, CompressedImage])
+def test_header_fields_from_bytes_equal_the_header(frame_id, mtype):
+    msg = mtype()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = 1_700_000_000, 123_456_789
+    msg.header.frame_id = frame_id
+    assert header_fields(serialize_message(msg)) == (1_700_000_000, 123_456_789, frame_id)
+
+
+def test_header_fields_refuse_a_frame_id_that_overruns_the_bytes():
+    raw = serialize_message(_image(1, 2, frame_id='cam1_optical_frame'))
+    with pytest.raises(ValueError, match='overruns'):
+        header_fields(raw[:20])
 
 
 def test_compressed_image_stamp_and_lazy_fields():

@@ -118,3 +118,22 @@ def test_cli_simulate(tmp_path, capsys):
     assert scen['scenario'] == 'gp-prior' and scen['seed'] == 4
     assert main(['simulate', '--output', str(out), '--duration', '3']) == 2
     assert 'exists' in capsys.readouterr().err
+
+
+def test_driver_style_frame_ids_reach_the_bag_and_the_offline_outputs(short_cell, tmp_path):
+    """Images in ``<camera>_color_optical_frame``: the frames the offline calibrator names."""
+    from armcal_ros.offline import collect_samples
+    from armcal_ros.settings import load_settings
+    from helpers.params_files import PUMA_URDF, write_params
+    path = tmp_path / 'bag'
+    write_sim_bag(short_cell, path, frame_id_format='{camera}_color_optical_frame')
+    frames = {m.header.frame_id for topic, _, _, m in iter_messages(path)
+              if topic.endswith('image_raw')}
+    assert frames == {f'cam{k}_color_optical_frame' for k in (1, 2, 3)}
+    settings = load_settings(write_params(tmp_path / 'p.yaml', {},
+                                          robot_description_file=PUMA_URDF,
+                                          marker_link='marker'))
+    front = collect_samples(str(path), settings)
+    assert front.frame_ids == {f'cam{k}': f'cam{k}_color_optical_frame' for k in (1, 2, 3)}
+    with pytest.raises(ValueError, match='frame_id_format'):
+        write_sim_bag(short_cell, tmp_path / 'bad', frame_id_format='cam_optical_frame')

@@ -3,6 +3,12 @@
 import numpy as np
 
 from armcal_ros.core.camera import Camera
+from armcal_ros.io.calib_files import camera_from_info_file, CameraInfoFile
+
+#: What to do about a CameraInfo whose distortion model armcal cannot use.
+MESSAGE_ADVICE = ('armcal fits plumb_bob (k1, k2, p1, p2, k3): calibrate the lens with a '
+                  'plumb_bob model, or set intrinsics_mode to estimate for this camera and let '
+                  'armcal estimate its intrinsics')
 
 
 def stamp_ns(header_stamp):
@@ -26,21 +32,24 @@ def camera_from_camera_info(msg, name='camera') -> Camera:
     """
     Read a sensor_msgs/CameraInfo into a :class:`Camera` (identity pose), as a consumer would.
 
-    Raises ValueError for an uncalibrated message (K[0] == 0), or a distortion model other
-    than plumb_bob with non-zero coefficients (with all of them zero every model is the
-    pinhole: rectified images).
+    Any distortion model is read, and used by the rule of a calibration file
+    (:func:`armcal_ros.io.calib_files.camera_from_info_file`): plumb_bob, or a model whose
+    coefficients beyond plumb_bob's five are zero (rational_polynomial with k4-k6 zero; with
+    all of them zero every model is the pinhole: rectified images).  Raises ValueError for an
+    uncalibrated message (K[0] == 0), and for a model armcal cannot use, naming it and its
+    non-zero coefficients.
     """
-    K = np.asarray(msg.k, float).reshape(3, 3)
-    if K[0, 0] == 0:
-        raise ValueError(f'camera_info of {name}: K[0] == 0 means uncalibrated')
-    d_all = np.asarray(msg.d, float).reshape(-1)
-    if msg.distortion_model != 'plumb_bob' and np.any(d_all != 0):
-        raise ValueError(f'camera_info of {name}: distortion_model {msg.distortion_model!r} '
-                         'is not plumb_bob and its coefficients are not zero')
-    d = np.zeros(5)
-    if msg.distortion_model == 'plumb_bob':
-        d[:min(5, d_all.size)] = d_all[:5]
-    return Camera(name, int(msg.width), int(msg.height), K[0, 0], K[1, 1], K[0, 2], K[1, 2], d)
+    K = np.asarray(msg.k, dtype=float).reshape(3, 3)
+    r, p = getattr(msg, 'r', None), getattr(msg, 'p', None)
+    info = CameraInfoFile(
+        camera_name=name, width=int(msg.width), height=int(msg.height), K=K,
+        distortion_model=str(msg.distortion_model),
+        D=np.asarray(msg.d, dtype=float).reshape(-1),
+        R=np.eye(3) if r is None or len(r) != 9 else np.asarray(r, dtype=float).reshape(3, 3),
+        P=(np.hstack([K, np.zeros((3, 1))]) if p is None or len(p) != 12
+           else np.asarray(p, dtype=float).reshape(3, 4)),
+        source=f'camera_info of {name}')
+    return camera_from_info_file(info, name, advice=MESSAGE_ADVICE)
 
 
 def camera_info_topic(image_topic):

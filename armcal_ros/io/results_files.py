@@ -16,20 +16,22 @@ import yaml
 
 from armcal_ros.core.results import Calibration, CameraCalibration
 from armcal_ros.core.target import pose_matrix, pose_vector
-from armcal_ros.io.calib_files import atomic_write_text, read_cameras, write_cameras
+from armcal_ros.io.calib_files import (atomic_write_text, camera_info_yaml, read_cameras,
+                                       write_cameras)
 
 CALIBRATION_FILE = 'calibration.json'
 TARGET_FILE = 'target.yaml'
 
 
-def write_calibration(directory, cal: Calibration, base_frame):
+def write_calibration(directory, cal: Calibration, base_frame, frame_ids=None):
     """
     Write ``<camera>.yaml``, ``extrinsics.yaml`` and ``calibration.json`` (each atomically).
 
+    ``frame_ids``: camera name -> optical frame for extrinsics.yaml (the images' frame_id).
     Returns the paths written.
     """
     cams = [c.camera for c in cal.cameras.values()]
-    write_cameras(directory, cams, base_frame)
+    write_cameras(directory, cams, base_frame, frame_ids)
     written = [os.path.join(directory, f'{c.name}.yaml') for c in cams]
     written.append(os.path.join(directory, 'extrinsics.yaml'))
     path = os.path.join(directory, CALIBRATION_FILE)
@@ -113,3 +115,31 @@ def read_target_yaml(path):
         return pose_matrix(doc['translation'], doc['rotation_xyzw'])
     except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
         raise ValueError(f'{path}: cannot read the target pose: {exc}') from exc
+
+
+#: The first line of every file :func:`write_driver_camera_info` writes: how a later write tells
+#: its own file from one a person or another tool put there.
+DRIVER_FILE_MARK = '# written by armcal_ros (the camera calibrator); camera_info_manager format'
+
+
+def write_driver_camera_info(directory, cam, camera_name):
+    """
+    Write ``<directory>/<camera_name>.yaml`` for a driver's camera_info_manager to load.
+
+    camera_info_manager's default URL is ``file://${ROS_HOME}/camera_info/${NAME}.yaml`` with
+    NAME the driver's ``camera_name``, which the file's ``camera_name`` field repeats (the
+    manager warns on a mismatch).  A file already there that this function did not write (a
+    checkerboard calibration, a factory file) is kept once as ``<camera_name>.before_armcal.yaml``
+    before it is replaced.  Returns (path written, path of the kept earlier file or None).
+    """
+    path = os.path.join(directory, f'{camera_name}.yaml')
+    kept = None
+    if os.path.exists(path):
+        with open(path, encoding='utf-8', errors='replace') as f:
+            ours = f.readline().rstrip('\n') == DRIVER_FILE_MARK
+        backup = os.path.join(directory, f'{camera_name}.before_armcal.yaml')
+        if not ours and not os.path.exists(backup):
+            os.replace(path, backup)
+            kept = backup
+    atomic_write_text(path, DRIVER_FILE_MARK + '\n' + camera_info_yaml(cam, camera_name))
+    return path, kept

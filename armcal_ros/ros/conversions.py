@@ -6,7 +6,8 @@ reads the output as a driver's):
 
 - CameraInfo of a monocular camera: ``distortion_model`` ``plumb_bob`` with
   D = (k1, k2, p1, p2, k3) as OpenCV orders them, K row-major, R = identity, P = [K | 0];
-  ``header.frame_id`` is ``<camera>_optical_frame`` (REP 103: x right, y down, z forward).
+  ``header.frame_id`` is the camera's optical frame (REP 103: x right, y down, z forward): the
+  frame_id its images carry, ``<camera>_optical_frame`` when none is known.
 - Poses are T_base_camera: the optical frame's origin and orientation in ``base_frame``, with
   the 6x6 covariance over (x, y, z, rotation about X, Y, Z) of the parent frame, row-major.
 """
@@ -100,13 +101,13 @@ def camera_from_pose(intrinsics: Camera, msg) -> Camera:
                                      intrinsics.K, intrinsics.dist, t, q)
 
 
-def transform_msg(cam: Camera, base_frame, stamp: Time) -> TransformStamped:
-    """Return the static transform base_frame -> <camera>_optical_frame."""
+def transform_msg(cam: Camera, base_frame, stamp: Time, child_frame_id=None) -> TransformStamped:
+    """Return the static transform base_frame -> the camera's optical frame (T_base_camera)."""
     t, q = cam.pose_in_world()
     msg = TransformStamped()
     msg.header.stamp = stamp
     msg.header.frame_id = base_frame
-    msg.child_frame_id = optical_frame(cam.name)
+    msg.child_frame_id = child_frame_id or optical_frame(cam.name)
     tr = msg.transform
     tr.translation.x, tr.translation.y, tr.translation.z = (float(v) for v in t)
     tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w = (float(v) for v in q)

@@ -24,6 +24,13 @@ publishes ``~/<camera>/camera_info`` and ``~/<camera>/pose``
 ``~/calibrate``, ``~/reset`` and ``~/save`` (std_srvs/Trigger); calls each driver's
 ``SetCameraInfo`` service listed in ``set_camera_info_services``.
 
+CameraInfo as a driver publishes it: once a camera is calibrated, one for every image of that
+camera the node receives, with that image's header (stamp and frame_id, read from the serialized
+bytes in the executor thread), so that exact-time synchronizers pair them; and, while no image
+arrives, the latest one again every second, so that a subscriber without transient-local
+durability still receives the calibration.  Every output names the optical frame the camera's
+images carry (``<camera>_optical_frame`` until one has arrived).
+
 Parameters are the table of :mod:`armcal_ros.params`, declared with descriptors and checked at
 start-up (the node exits with the reason) and on every runtime set (refused with the reason).
 Those that shape the subscriptions, the robot model or the front end are read-only; the noise
@@ -62,7 +69,8 @@ from armcal_ros.io.message_fields import camera_from_camera_info, pose_from_msg,
 from armcal_ros.params import BY_NAME, check_value, NODE_NAME, PARAMS, resolve_paths
 from armcal_ros.ros import conversions as conv
 from armcal_ros.ros.event_queue import EventQueue
-from armcal_ros.ros.raw_message import LazyMessage
+from armcal_ros.io.results_files import write_driver_camera_info
+from armcal_ros.ros.raw_message import header_fields, LazyMessage
 from armcal_ros.ros.status import diagnostic_statuses, NodeState
 from armcal_ros.settings import (settings_from_values, with_given_intrinsics,
                                  with_solver_intrinsics)
@@ -100,6 +108,13 @@ SOLVE_CHECK_PERIOD_S = 0.5
 WORKER_BATCH_PERIOD_S = 0.02
 BATCH_SIZE = 256
 DIAGNOSTICS_PERIOD_S = 1.0
+#: With no image of a camera for this long, its latest CameraInfo is published again once per
+#: period (a driver publishes CameraInfo only with images; a volatile subscriber that comes
+#: after the images stopped would otherwise never receive the calibration).
+IDLE_CAMERA_INFO_S = 1.0
+#: Shutdown: what is still queued is worked through for at most this long, then the open dwell
+#: is closed and everything saved, so that the node is gone within 2 s of SIGINT or SIGTERM.
+SHUTDOWN_DRAIN_S = 0.7
 
 
 def _no_events(kind):
@@ -178,8 +193,16 @@ class CalibratorNode(Node):
         self._restored = ''
         self._markers_revision = -1
         self._last_estimated = None
-        self._static_tf = None
+        self._tf_pub = None
         self._tf_warned = False
+        # Per camera: the header of its latest image (sec, nanosec, frame_id) and when it came
+        # (monotonic), and the CameraInfo stamped afresh for each image (None: not calibrated).
+        # Written by the executor thread only, but for _info_msg, which the solver replaces.
+        self._last_header = {}
+        self._last_image_wall = {}
+        self._info_msg = {}
+        self._drain_until = None
+        self._n_published = 0
 
         latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                              reliability=ReliabilityPolicy.RELIABLE,
@@ -189,6 +212,17 @@ class CalibratorNode(Node):
                                                   **quiet) for c in self.camera_names}
         self.pub_pose = {c: self.create_publisher(PoseWithCovarianceStamped, f'~/{c}/pose',
                                                   latched, **quiet) for c in self.camera_names}
+        self.pub_image = {}
+        if self.settings.outputs.republish_images:
+            # Reliable: it matches reliable and best-effort subscribers alike.
+            image_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
+                                   reliability=ReliabilityPolicy.RELIABLE,
+                                   durability=DurabilityPolicy.VOLATILE)
+            for c, topic in zip(self.camera_names, v['image_topics']):
+                compressed = topic.rstrip('/').endswith('/compressed')
+                self.pub_image[c] = self.create_publisher(
+                    CompressedImage if compressed else Image,
+                    f'~/{c}/image_raw' + ('/compressed' if compressed else ''), image_qos, **quiet)
         self.pub_markers = self.create_publisher(MarkerArray, '~/markers', latched, **quiet)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.pub_samples = self.create_publisher(PointStamped, '~/samples', 100)
@@ -240,6 +274,7 @@ class CalibratorNode(Node):
         self._worker.start()
         self.create_timer(SOLVE_CHECK_PERIOD_S, self._maybe_solve)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
+        self.create_timer(IDLE_CAMERA_INFO_S, self._republish_idle_camera_info)
         self.add_on_set_parameters_callback(self._check_runtime_parameters)
         self.add_post_set_parameters_callback(self._apply_runtime_parameters)
         self.get_logger().info(
@@ -360,7 +395,42 @@ class CalibratorNode(Node):
     def _image_callback(self, camera, msg_type):
         def callback(raw):
             self.queue.put('image', (camera, LazyMessage(raw, msg_type)))
+            try:
+                sec, nanosec, frame = header_fields(raw)
+            except ValueError:
+                return      # the front end counts and logs it when it reads the stamp
+            self._image_arrived(camera, sec, nanosec, frame, raw)
         return callback
+
+    def _image_arrived(self, camera, sec, nanosec, frame, raw):
+        """Follow the image's frame, publish its CameraInfo (and the image); executor thread."""
+        if frame and frame != self.engine.frame_ids.get(camera):
+            self._frame_seen(camera, frame)
+        frame = self.engine.frame_id(camera)
+        self._last_header[camera] = (sec, nanosec, frame)
+        self._last_image_wall[camera] = time.monotonic()
+        info = self._info_msg.get(camera)
+        if info is not None:
+            info.header.stamp.sec, info.header.stamp.nanosec = sec, nanosec
+            info.header.frame_id = frame
+            self._publish(self.pub_info[camera], info)
+        pub = self.pub_image.get(camera)
+        if pub is not None:
+            self._publish(pub, raw)
+
+    def _frame_seen(self, camera, frame):
+        """Use from now on the frame a camera's images name (the outputs did not use it yet)."""
+        before = self.engine.frame_ids.get(camera)
+        self.engine.frame_ids[camera] = frame
+        if before is None:
+            self.get_logger().info(f'{camera}: images in frame {frame!r}: CameraInfo, TF and '
+                                   f'extrinsics.yaml name it')
+        else:
+            self.get_logger().warning(f'{camera}: images now in frame {frame!r} (were in '
+                                      f'{before!r}): the outputs follow')
+        cal = self.engine.published or self.engine.current
+        if cal is not None:
+            self._publish_tf(cal, self.get_clock().now().to_msg())
 
     def _log_input(self, message):
         self.get_logger().warning(message)
@@ -371,15 +441,21 @@ class CalibratorNode(Node):
         flushed = True
         while True:
             batch = self.queue.get_batch(timeout=0.2, max_items=BATCH_SIZE)
+            if self._drain_until is not None and (not batch or
+                                                  time.monotonic() > self._drain_until):
+                # Shutting down: the open dwell becomes a sample if it can, so it is saved.
+                self._store(self._guard(self.collector.flush))
+                self._snapshot()
+                return
             if not batch:
-                if self.queue.closed:
-                    return
                 if not flushed and time.monotonic() - last_input > IDLE_FLUSH_S:
                     self._store(self._guard(self.collector.flush))
                     flushed = True
                     self._snapshot()
                 continue
             for kind, item in batch:
+                if self._drain_until is not None and time.monotonic() > self._drain_until:
+                    break       # shutting down: what is left is not worth the wait
                 if kind == 'control':
                     self._guard(item)
                     continue
@@ -457,6 +533,8 @@ class CalibratorNode(Node):
 
     def _on_solve(self, outcome):
         """Engine callback (solver or service thread): log, save, publish, commit."""
+        if self._closing:
+            return
         try:
             self._handle_outcome(outcome)
         except Exception as exc:  # noqa: B902 - publishing must not kill the solver thread
@@ -478,8 +556,12 @@ class CalibratorNode(Node):
                 # calibration: consumers stop using the old one until the camera is re-solved.
                 cam = record.camera
                 w, h = self.engine.image_sizes.get(cam, (0, 0))
-                self._publish(self.pub_info[cam], conv.uncalibrated_camera_info_msg(
-                    cam, w, h, self.get_clock().now().to_msg()))
+
+                def uncalibrated():
+                    return conv.uncalibrated_camera_info_msg(
+                        cam, w, h, self._header_stamp(cam), self.engine.frame_id(cam))
+                self._publish(self.pub_info[cam], uncalibrated())
+                self._info_msg[cam] = uncalibrated()
             self._publish_diagnostics()
         except Exception as exc:  # noqa: B902 - reporting must not kill the worker thread
             if not self._closing:
@@ -502,6 +584,7 @@ class CalibratorNode(Node):
         # withheld after a change are left out until they are recalibrated.
         self._save('after a solve')
         cal = self.engine.published or cal
+        self._write_driver_files(cal)
         self._publish_calibration(cal)
         self._commit_to_drivers(cal)
 
@@ -510,38 +593,92 @@ class CalibratorNode(Node):
             if not self._closing:
                 pub.publish(msg)
 
+    def _header_stamp(self, camera):
+        """Return the stamp of the camera's latest image, or now when none has arrived."""
+        last = self._last_header.get(camera)
+        if last is None:
+            return self.get_clock().now().to_msg()
+        return conv.time_msg(last[0] * 1_000_000_000 + last[1])
+
     def _publish_calibration(self, cal):
-        stamp = self.get_clock().now().to_msg()
-        cams = [cal.cameras[c].camera for c in self.camera_names if c in cal.cameras]
+        now = self.get_clock().now().to_msg()
         for name in self.camera_names:
             c = cal.cameras.get(name)
             if c is None:
                 continue
-            self._publish(self.pub_info[name], conv.camera_info_msg(c.camera, stamp))
+            frame = self.engine.frame_id(name)
+            # Stamped like the latest image, so a synchronizer pairs it even before the next.
+            self._publish(self.pub_info[name], conv.camera_info_msg(
+                c.camera, self._header_stamp(name), frame))
+            self._info_msg[name] = conv.camera_info_msg(c.camera, self._header_stamp(name),
+                                                        frame)
             self._publish(self.pub_pose[name], conv.pose_msg(c.camera, c.pose_covariance,
-                                                             self.base_frame, stamp))
-        self._publish_tf(cams, stamp)
+                                                             self.base_frame, now))
+        self._publish_tf(cal, now)
         self._publish_markers(force=True)
+        self._n_published += 1
 
-    def _publish_tf(self, cams, stamp):
+    def _republish_idle_camera_info(self):
+        """Publish again the latest CameraInfo of each camera whose images stopped (timer)."""
+        now = time.monotonic()
+        for cam, info in list(self._info_msg.items()):
+            if now - self._last_image_wall.get(cam, -np.inf) > IDLE_CAMERA_INFO_S:
+                info.header.stamp = self._header_stamp(cam)
+                info.header.frame_id = self.engine.frame_id(cam)
+                self._publish(self.pub_info[cam], info)
+
+    def _publish_tf(self, cal, stamp):
+        """
+        Publish T_base_camera of every calibrated camera on /tf_static (tf2_msgs/TFMessage).
+
+        As tf2_ros' StaticTransformBroadcaster does (reliable, transient local, depth 1, the
+        whole set in one message), without needing tf2_ros: only the message package.  The set
+        is rebuilt each time, so a camera's frame that changed leaves no stale child behind.
+        """
+        cams = [(cal.cameras[c].camera, self.engine.frame_id(c)) for c in self.camera_names
+                if c in cal.cameras]
         if not self.values['publish_tf'] or not cams:
             return
-        if self._static_tf is None:
+        if self._tf_pub is None:
             try:
-                import tf2_ros
+                from tf2_msgs.msg import TFMessage
             except ImportError:
                 if not self._tf_warned:
                     self._tf_warned = True
                     self.get_logger().warning(
-                        'tf2_ros is not importable here: static TF base_frame -> '
-                        '<camera>_optical_frame is not published; the poses are on '
-                        '~/<camera>/pose and in extrinsics.yaml')
+                        'tf2_msgs is not importable here: static TF base_frame -> optical '
+                        'frames is not published; the poses are on ~/<camera>/pose and in '
+                        'extrinsics.yaml (README, "Using the calibration": TF)')
                 return
-            self._static_tf = tf2_ros.StaticTransformBroadcaster(self)
-        with self._pub_lock:
-            if not self._closing:
-                self._static_tf.sendTransform([conv.transform_msg(c, self.base_frame, stamp)
-                                               for c in cams])
+            qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+            self._tf_pub = (TFMessage, self.create_publisher(
+                TFMessage, '/tf_static', qos,
+                event_callbacks=_no_events(PublisherEventCallbacks)))
+        msg_type, pub = self._tf_pub
+        self._publish(pub, msg_type(transforms=[
+            conv.transform_msg(c, self.base_frame, stamp, frame) for c, frame in cams]))
+
+    def _write_driver_files(self, cal):
+        """Write each calibrated camera's YAML where camera_info_manager looks by default."""
+        out = self.settings.outputs
+        if out.camera_info_dir is None:
+            return
+        names = dict(out.camera_info_names)
+        for cam, c in cal.cameras.items():
+            if cam not in names:
+                continue
+            try:
+                path, kept = write_driver_camera_info(out.camera_info_dir, c.camera, names[cam])
+            except OSError as exc:
+                self.get_logger().error(f'{cam}: cannot write the driver\'s calibration file '
+                                        f'in {out.camera_info_dir}: {exc}',
+                                        throttle_duration_sec=60.0)
+                continue
+            if kept:
+                self.get_logger().warning(f'{cam}: {path} held a calibration armcal did not '
+                                          f'write: kept as {kept}')
 
     def _publish_markers(self, force=False):
         rev = self.engine.store.revision
@@ -680,7 +817,8 @@ class CalibratorNode(Node):
             queue_dropped=dict(self.queue.dropped), queue_depth=self.queue.depth(),
             restored=self._restored, changes=list(e.changes.records),
             withheld=e.withheld(), start_ns=self.engine.store.first_stamp_ns(),
-            recalibration_samples=e.settings.recalibration_samples)
+            recalibration_samples=e.settings.recalibration_samples,
+            n_published=self._n_published, frame_ids=dict(e.frame_ids))
 
     def _publish_diagnostics(self):
         stamp = self.get_clock().now().to_msg()
@@ -689,23 +827,26 @@ class CalibratorNode(Node):
         self._publish_markers()
 
     # -- shutdown ------------------------------------------------------------------------
-    def close(self, solve_timeout=15.0):
+    def close(self, solve_timeout=0.5):
         """
-        Stop the worker, wait for a running solve, save; call before destroy_node().
+        Stop the worker, save the samples; call before destroy_node().
 
-        Bounded: 5 s for the front-end worker, ``solve_timeout`` for a running solve (whose
-        result is then dropped), so a supervisor's stop timeout of 30 s is never reached.
+        Bounded so that the process is gone within 2 s: the front end works through its queue
+        for at most :data:`SHUTDOWN_DRAIN_S`, closes the open dwell and stops; a running solve
+        gets ``solve_timeout`` to finish, after which its result is discarded (its samples are
+        saved, and the next start solves them again).
         """
         self.get_logger().info('shutting down: stopping the front end'
-                               + (', waiting for the running solve' if self.engine.solving
-                                  else ''))
+                               + (', a solve is running' if self.engine.solving else ''))
+        self._drain_until = time.monotonic() + SHUTDOWN_DRAIN_S
         self.queue.close()
-        self._worker.join(timeout=5.0)
+        self._worker.join(timeout=SHUTDOWN_DRAIN_S + 0.5)
         if self._worker.is_alive():
-            self.get_logger().warning('the front-end worker did not stop within 5 s')
+            self.get_logger().warning(f'the front-end worker did not stop within '
+                                      f'{SHUTDOWN_DRAIN_S + 0.5:.1f} s')
         if not self.engine.wait(solve_timeout):
             self.get_logger().warning('a solve is still running at shutdown; its result is '
-                                      'discarded')
+                                      'discarded (the samples are saved)')
         with self._pub_lock:
             self._closing = True
         if self._save('at shutdown') is not None:
@@ -723,10 +864,13 @@ def main(args=None):
 
     SIGINT and SIGTERM end the spin in the main thread while the context is still valid, so
     that the node can stop its threads, save and log before rclpy shuts down (a thread still
-    spinning at ``rclpy.shutdown()`` aborts the process, so threads are joined first).
+    spinning at ``rclpy.shutdown()`` aborts the process, so threads are joined first).  Both
+    handlers are installed explicitly: a process started in the background by a shell inherits
+    SIGINT ignored, and Python then installs no KeyboardInterrupt handler of its own.
     """
     argv = sys.argv if args is None else args
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
     try:
         node = CalibratorNode(argv=argv)

@@ -10,7 +10,8 @@ from the bytes, and hands the front end a :class:`LazyMessage` that deserializes
 CDR layout of a message that starts with a ``std_msgs/Header`` (sensor_msgs/Image and
 CompressedImage both do): a 4-byte encapsulation header (``00 01`` little endian, ``00 00``
 big endian, then two option bytes), then ``int32 sec`` and ``uint32 nanosec`` (4-aligned from
-the start of the payload, so at byte 4 and 8), then the frame id string.
+the start of the payload, so at byte 4 and 8), then the frame id string: ``uint32`` length
+(the terminating NUL included) at byte 12, then its bytes from byte 16.
 """
 
 import struct
@@ -36,6 +37,29 @@ def header_stamp_ns(raw) -> int:
     if sec < 0 or nanosec >= 1_000_000_000:
         raise ValueError(f'header stamp {sec} s {nanosec} ns is not a valid time')
     return sec * 1_000_000_000 + nanosec
+
+
+def header_fields(raw):
+    """
+    Return ``(sec, nanosec, frame_id)`` of the header of a serialized message that starts with one.
+
+    A few microseconds against the milliseconds of deserializing a VGA image: the node reads
+    every image's header this way to stamp the CameraInfo it publishes beside it.  Raises
+    ValueError as :func:`header_stamp_ns` does, and for a frame id that overruns the bytes or
+    is not UTF-8.
+    """
+    stamp = header_stamp_ns(raw)
+    endian = _ENDIAN[bytes(raw[:2])]
+    if len(raw) < 16:
+        raise ValueError(f'serialized message of {len(raw)} bytes is too short for a header')
+    (n,) = struct.unpack_from(endian + 'I', raw, 12)
+    if n < 1 or 16 + n > len(raw):
+        raise ValueError(f'header frame_id of {n} bytes overruns a message of {len(raw)} bytes')
+    try:
+        frame_id = bytes(raw[16:16 + n - 1]).decode('utf-8')
+    except UnicodeDecodeError as exc:
+        raise ValueError(f'header frame_id is not UTF-8: {exc}') from exc
+    return stamp // 1_000_000_000, stamp % 1_000_000_000, frame_id
 
 
 class LazyMessage:

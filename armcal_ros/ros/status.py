@@ -68,6 +68,10 @@ class NodeState:
     withheld: List[str] = field(default_factory=list)
     start_ns: int = 0
     recalibration_samples: int = 20
+    #: Calibrations published so far (a consumer waiting for a new one compares it), and the
+    #: optical frame each camera's outputs name.
+    n_published: int = 0
+    frame_ids: Dict[str, str] = field(default_factory=dict)
 
 
 def diagnostic_statuses(s: NodeState, node_name='armcal') -> List[Status]:
@@ -101,7 +105,8 @@ def diagnostic_statuses(s: NodeState, node_name='armcal') -> List[Status]:
         level = max(level, WARN)
         message += f'; {dropped} inputs dropped (front end too slow)'
     values = dict(state=state, samples=s.n_samples, min_samples=s.min_samples,
-                  solving=s.solving, solves=s.n_solves, solves_rejected=s.n_rejected)
+                  solving=s.solving, solves=s.n_solves, solves_rejected=s.n_rejected,
+                  published=s.n_published)
     for name in s.camera_names:
         values[f'samples_{name}'] = s.samples_per_camera.get(name, 0)
     if out is not None:
@@ -147,6 +152,7 @@ def camera_status(name, s: NodeState, node_name='armcal') -> Status:
     values = dict(samples=s.samples_per_camera.get(name, 0))
     size = s.image_sizes.get(name)
     values['image_size'] = f'{size[0]}x{size[1]}' if size else 'no image yet'
+    values['frame_id'] = s.frame_ids.get(name) or f'{name}_optical_frame'
     c = s.calibration.cameras.get(name) if s.calibration is not None else None
     mine = [r for r in s.changes if r.camera == name and r.kind == 'camera']
     if mine:

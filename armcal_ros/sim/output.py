@@ -3,10 +3,11 @@ Write a simulated cell (:class:`~armcal_ros.sim.cell.SimResult`) to a rosbag2 ba
 
 Topics: ``/joint_states`` (sensor_msgs/JointState) and, per camera, ``/<cam>/image_raw``
 (sensor_msgs/Image) or ``/<cam>/image_raw/compressed`` (sensor_msgs/CompressedImage, png or
-jpeg), frame_id ``<cam>_optical_frame``; messages in bag-time (receive) order.  Optionally a
-pose topic (geometry_msgs/PoseStamped or TransformStamped, frame ``base_frame``) with the marker
-link's pose at every joint state, as a robot controller reports it: forward kinematics of the
-nominal model at the joint readings (so it carries the same bias as the joint states).
+jpeg), frame_id ``<cam>_optical_frame`` (or as ``frame_id_format`` says); messages in bag-time
+(receive) order.  Optionally a pose topic (geometry_msgs/PoseStamped or TransformStamped, frame
+``base_frame``) with the marker link's pose at every joint state, as a robot controller
+reports it: forward kinematics of the nominal model at the joint readings (so it carries the
+same bias as the joint states).
 
 Ground truth goes to ``<bag>/ground_truth/`` (inside the bag directory, beside the storage
 file, so it travels with the bag; rosbag2 readers ignore it):
@@ -102,7 +103,8 @@ def link_poses(result):
 
 def write_sim_bag(result, path, storage='mcap', compressed=None, encoding='mono8',
                   compress=True, ground_truth=True, jpeg_quality=90, progress=None,
-                  pose_topic=None, pose_type='pose_stamped'):
+                  pose_topic=None, pose_type='pose_stamped',
+                  frame_id_format='{camera}_optical_frame'):
     """
     Write ``result`` to the rosbag2 bag directory ``path`` (must not exist).
 
@@ -110,8 +112,12 @@ def write_sim_bag(result, path, storage='mcap', compressed=None, encoding='mono8
     mono8, rgb8 or bgr8; ``compress`` turns on zstd chunk compression (mcap only).
     ``pose_topic`` (e.g. ``/tool_pose``) adds the marker link's pose at every joint state as
     ``pose_type`` ``'pose_stamped'`` or ``'transform_stamped'`` (module docstring).
+    ``frame_id_format`` names each camera's images' frame (``{camera}`` is its name), e.g.
+    ``'{camera}_color_optical_frame'`` as a RealSense driver would.
     ``progress(i, n)`` is called now and then.  Returns {topic: message count}.
     """
+    if '{camera}' not in frame_id_format:
+        raise ValueError(f'frame_id_format must contain {{camera}}, got {frame_id_format!r}')
     if pose_type not in POSE_MSG_TYPES:
         raise ValueError(f'pose_type must be one of {sorted(POSE_MSG_TYPES)}, got {pose_type!r}')
     if compressed is not None and compressed not in COMPRESSED_FORMATS:
@@ -155,7 +161,7 @@ def write_sim_bag(result, path, storage='mcap', compressed=None, encoding='mono8
                 j = int(frames.camera[i])
                 cam = result.cameras[j]
                 img = result.render(i, encoding)
-                frame_id = f'{cam.name}_optical_frame'
+                frame_id = frame_id_format.format(camera=cam.name)
                 if compressed:
                     w.write_compressed_image(cam_topics[j], int(frames.stamp_ns[i]), img,
                                              compressed, encoding, frame_id,

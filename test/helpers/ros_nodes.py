@@ -27,7 +27,7 @@ from std_srvs.srv import Trigger
 from armcal_ros.ros import conversions as conv
 from helpers.params_files import ROOT
 
-KEYS = ('ROS_DOMAIN_ID', 'ROS_LOG_DIR', 'ROS_AUTOMATIC_DISCOVERY_RANGE')
+KEYS = ('ROS_DOMAIN_ID', 'ROS_LOG_DIR', 'ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_HOME')
 DOMAINS = 200
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -55,12 +55,16 @@ def isolated_ros_env(tmp_path_factory, module_name):
     """
     Set the variables for this process (and its children), yield the environment, restore.
 
-    The module's own domain (:func:`domain_id`), a fresh log directory, localhost discovery.
+    The module's own domain (:func:`domain_id`), a fresh log and ROS_HOME directory, localhost
+    discovery.
     """
     saved = {k: os.environ.get(k) for k in KEYS}
     os.environ['ROS_DOMAIN_ID'] = str(domain_id(module_name))
     os.environ['ROS_LOG_DIR'] = str(tmp_path_factory.mktemp('ros_log'))
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    # The node's default places ($ROS_HOME/armcal, $ROS_HOME/camera_info) inside the test's
+    # own directory, never the user's ~/.ros.
+    os.environ['ROS_HOME'] = str(tmp_path_factory.mktemp('ros_home'))
     yield dict(os.environ, PYTHONUNBUFFERED='1')
     for k, v in saved.items():
         if v is None:
@@ -83,11 +87,15 @@ def wait_until(pred, timeout, what):
 class Proc:
     """A subprocess with its output in a file; stopped with SIGINT, killed if it hangs."""
 
-    def __init__(self, args, env, log_path):
+    def __init__(self, args, env, log_path, ignore_sigint=False):
         self.log_path = log_path
         self._log = open(log_path, 'w')
-        self.p = subprocess.Popen(args, env=env, cwd=ROOT, stdout=self._log,
-                                  stderr=subprocess.STDOUT)
+        # ignore_sigint: started as a shell starts a background job (`node &` in a script),
+        # with SIGINT ignored, which the child inherits.
+        self.p = subprocess.Popen(
+            args, env=env, cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT,
+            preexec_fn=(lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) if ignore_sigint
+            else None)
 
     def alive(self):
         return self.p.poll() is None
@@ -144,6 +152,20 @@ class Client:
                                             lambda m: got.append((time.monotonic(), m)), qos)
         return got, sub
 
+    def record_headers(self, mtype, topic, qos):
+        """
+        Subscribe serialized; return the list every (sec, nanosec, frame_id) is appended to.
+
+        For image topics: only the header is read from the bytes, so the test process does
+        not deserialize every frame.
+        """
+        from armcal_ros.ros.raw_message import header_fields
+        got = []
+        sub = self.node.create_subscription(mtype, topic,
+                                            lambda raw: got.append(header_fields(raw)), qos,
+                                            raw=True)
+        return got, sub
+
     def call(self, srv_type, name, request, timeout=60.0):
         cli = self.node.create_client(srv_type, name)
         try:
@@ -181,9 +203,9 @@ def diag_values(records, name, after=0.0):
     return None
 
 
-def start_node(env, params, log_path):
+def start_node(env, params, log_path, ignore_sigint=False):
     return Proc([sys.executable, '-m', 'armcal_ros.ros.node', '--ros-args', '--params-file',
-                 params], env, log_path)
+                 params], env, log_path, ignore_sigint)
 
 
 def start_replay(env, bag, rate, log_path, *options, delay=0.5):
@@ -228,17 +250,42 @@ def replay_and_calibrate(client, env, params, bag, log_dir, duration, rate, proc
     def calibrate():
         # A background solve may start between the diagnostics saying none runs and the call
         # (the worker adds a late sample on a loaded machine): wait for it and call again.
-        wait_until(lambda: (diag_values(diag, 'armcal: calibration') or {}).get(
-            'solving') == 'False', 120, 'the background solve to end')
+        v = wait_until(lambda: (lambda v: v if v and v.get('solving') == 'False' else None)(
+            diag_values(diag, 'armcal: calibration')), 120, 'the background solve to end')
         t = time.monotonic()
         res = client.trigger('calibrate')
-        return (t, res) if res.success or 'running already' not in res.message else None
-    t_cal, res = wait_until(calibrate, 240, 'a ~/calibrate call that is not refused as busy')
+        return (t, int(v['published']), res) \
+            if res.success or 'running already' not in res.message else None
+    t_cal, published, res = wait_until(calibrate, 240,
+                                       'a ~/calibrate call that is not refused as busy')
     assert res.success, res.message
+    t_new = wait_until_published(diag, t_cal, published, 120)
     for c, got in info.items():
-        wait_until(lambda: got and got[-1][0] >= t_cal, 120, f'CameraInfo of {c} after '
+        # The node repeats the latest CameraInfo every second once images stop: one received
+        # after the diagnostics counted the new calibration published is the new one.
+        wait_until(lambda: got and got[-1][0] >= t_new, 30, f'CameraInfo of {c} after '
                    '~/calibrate')
     return node, t_cal
+
+
+def wait_until_published(diag, after, published, timeout):
+    """
+    Wait for diagnostics (received after ``after``) counting more than ``published`` calibrations.
+
+    Returns the monotonic time that message was received: every CameraInfo received later
+    carries the new calibration.
+    """
+    def newer():
+        for t, msg in reversed(list(diag)):
+            if t < after:
+                return None
+            for st in msg.status:
+                if st.name == 'armcal: calibration':
+                    v = {kv.key: kv.value for kv in st.values}
+                    if int(v.get('published', 0)) > published:
+                        return t
+        return None
+    return wait_until(newer, timeout, 'a newly published calibration in /diagnostics')
 
 
 def check_camera_info(info, truth, cams, rel=0.03):
