@@ -7,8 +7,10 @@ user can fix end the command with a one-line reason on stderr and a non-zero sta
 """
 
 import argparse
+import math
 import sys
 
+from armcal_ros.params import number_arg
 from armcal_ros.ros.replay import add_arguments as _add_replay, run as _run_replay
 
 
@@ -29,8 +31,9 @@ def _add_simulate(p):
     p.add_argument('--error-model', default=ERROR_MODELS[0], choices=ERROR_MODELS,
                    help='geometric errors: 6-DoF on every joint origin, or the prototype\'s DH '
                         'errors (offset, a, d, alpha; for DH-built URDFs)')
-    p.add_argument('--seed', type=int, default=0)
-    p.add_argument('--duration', type=float, default=60.0, help='seconds of teleoperation')
+    p.add_argument('--seed', type=number_arg(int, 0, 2 ** 32 - 1), default=0)
+    p.add_argument('--duration', type=number_arg(float, maximum=86400.0), default=60.0,
+                   help='seconds of teleoperation (> 2, at most a day)')
     p.add_argument('--storage', default='mcap', choices=['mcap', 'sqlite3'])
     p.add_argument('--compressed', default=None, choices=['none', 'png', 'jpeg'],
                    help='publish sensor_msgs/CompressedImage on /<cam>/image_raw/compressed '
@@ -45,10 +48,11 @@ def _add_simulate(p):
     p.add_argument('--refocus', action='append', default=[], metavar='CAM:TIME:PERCENT',
                    help='change camera CAM\'s focal length (fx, fy) by PERCENT %% TIME s into '
                         'the session (repeatable)')
-    p.add_argument('--lamp', type=float, nargs=3, default=None, metavar=('X', 'Y', 'Z'),
+    p.add_argument('--lamp', type=number_arg(float, -1000.0, 1000.0), nargs=3, default=None,
+                   metavar=('X', 'Y', 'Z'),
                    help='light the marker, a matte ball, by one lamp at X Y Z (m, base frame) '
                         'instead of letting it glow alike from every side')
-    p.add_argument('--ambient', type=float, default=0.25,
+    p.add_argument('--ambient', type=number_arg(float, 0.0, 1.0), default=0.25,
                    help='with --lamp: the fraction of the full brightness the ball\'s unlit '
                         'side keeps (default 0.25)')
     p.add_argument('--frame-id-format', default='{camera}_optical_frame',
@@ -73,6 +77,8 @@ def _camera_change(option, text, camera_names, duration):
         if len(parts) != len(names) + 2:
             raise ValueError(f'{len(parts)} fields')
         values = [float(v) for v in parts[1:]]
+        if not all(math.isfinite(v) for v in values):
+            raise ValueError('every number must be finite')
         change = CameraChange(parts[0], values[0], **dict(zip(names, values[1:])))
     except ValueError as err:
         raise ValueError(f'{option} expects {form} (e.g. {example}), got {text!r}: {err}') \
@@ -226,6 +232,11 @@ def main(argv=None):
     except (ValueError, FileNotFoundError, RuntimeError) as err:
         print(f'armcal {args.command}: {err}', file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        # One line and the shell's status for SIGINT; an output directory is only ever
+        # replaced as a whole at the end (io/output_dir.py), so it is as it was.
+        print(f'\narmcal {args.command}: interrupted', file=sys.stderr)
+        return 130
 
 
 if __name__ == '__main__':

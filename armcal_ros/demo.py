@@ -14,6 +14,7 @@ import os
 import sys
 
 from armcal_ros.compare import compare, format_comparison, load_truth
+from armcal_ros.params import number_arg
 from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.calibration import calibrate
 from armcal_ros.core.evaluation import score_cameras
@@ -102,8 +103,10 @@ def add_arguments(ap):
                     help='noise models to compare (the front end runs once)')
     ap.add_argument('--synthetic', action='store_true',
                     help='point-level demo without a bag (every noise model)')
-    ap.add_argument('--points', type=int, default=300, help='points of the synthetic demo')
-    ap.add_argument('--seed', type=int, default=0, help='seed of the synthetic demo')
+    ap.add_argument('--points', type=number_arg(int, 10, 100000), default=300,
+                    help='points of the synthetic demo')
+    ap.add_argument('--seed', type=number_arg(int, 0, 2 ** 32 - 1), default=0,
+                    help='seed of the synthetic demo')
 
 
 def run(args):

@@ -10,7 +10,10 @@ views are replayed as still dwells one second apart, so the offline and the live
 differ in what they make of the same data.
 
 A camera topic that is missing or empty is reported and the other cameras are still calibrated;
-a message that cannot be deserialised is counted and skipped.
+a message that cannot be deserialised is counted and skipped.  A corrupt bag is read as far as it
+is readable (:func:`~armcal_ros.io.bag.iter_raw`): the messages it lost are counted per topic
+into the report's ``lost_messages`` and a warning; one that cannot be read at all is a
+:class:`CalibrateError` naming why.
 """
 
 import copy
@@ -26,13 +29,15 @@ from armcal_ros.change_tracking import ChangeTracker
 from armcal_ros.compose import build_engine, build_pipeline
 from armcal_ros.core.target import pose_vector
 from armcal_ros.engine import SolveOutcome
-from armcal_ros.frontend.collector import SampleCollector
+from armcal_ros.frontend.collector import SampleCollector, why_few_samples
 from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.frontend.store import SampleStore
-from armcal_ros.io.bag import bag_topics, DeserializationError, iter_raw
+from armcal_ros.io.bag import (bag_topics, BagLosses, BagReadError, DeserializationError,
+                               iter_raw)
 from armcal_ros.io.calib_files import atomic_write_text
 from armcal_ros.io.folder_import import capture_stamp, POSE_MARGIN_NS
 from armcal_ros.io.message_fields import camera_from_camera_info, pose_from_msg, stamp_ns
+from armcal_ros.io.output_dir import OutputDirectory, OutputDirError
 from armcal_ros.io.rct_import import is_rct_folder, load_rct_folder, RctFormatError
 from armcal_ros.io.results_files import write_calibration
 from armcal_ros.robot.kinematics import KinematicChain
@@ -62,9 +67,10 @@ class Recording:
 
     ``events()`` yields ``('joints', stamp_ns, names, positions)``, ``('pose', stamp_ns,
     translation, quaternion)``, ``('image', camera, stamp_ns, message)`` or
-    ``('corrupt', reason)``, in time order.  ``board_target`` and ``board_guess`` complete a
-    board from the data set's own files (a robot_cal_tools ``target.yaml`` and
-    ``pose_guesses.yaml``).
+    ``('corrupt', reason[, topic])``, in time order.  ``board_target`` and ``board_guess``
+    complete a board from the data set's own files (a robot_cal_tools ``target.yaml`` and
+    ``pose_guesses.yaml``).  ``losses`` is what reading a bag lost, complete once ``events()``
+    is exhausted.
     """
 
     events: Callable[[], Iterator[tuple]]
@@ -77,6 +83,7 @@ class Recording:
     poses_given: bool = False
     #: Intrinsics read from the recording's CameraInfo (cameras given without a file).
     intrinsics: Dict = field(default_factory=dict)
+    losses: Optional[BagLosses] = None
 
 
 @dataclass
@@ -99,6 +106,11 @@ class FrontEnd:
     monitor_solves: int = 0
     #: Camera name -> the frame_id of its first image (the optical frame the outputs name).
     frame_ids: Dict[str, str] = field(default_factory=dict)
+    #: Robot-model joints the joint states lacked, and the names such a message carried.
+    missing_joints: tuple = ()
+    seen_joint_names: tuple = ()
+    #: Topic -> messages of the recording that never reached the front end (corrupt data).
+    lost: Dict[str, int] = field(default_factory=dict)
 
 
 @dataclass
@@ -115,6 +127,8 @@ def open_bag(bag, settings: Settings) -> Recording:
     """Check a bag's topics against ``settings`` and return it as a :class:`Recording`."""
     try:
         topics = bag_topics(bag)
+    except BagReadError as exc:
+        raise CalibrateError(str(exc)) from exc
     except Exception as exc:
         raise CalibrateError(f'cannot open bag {bag}: {exc}') from exc
     inputs = settings.inputs
@@ -140,23 +154,28 @@ def open_bag(bag, settings: Settings) -> Recording:
         raise CalibrateError(f'bag {bag}: none of the image_topics {list(inputs.image_topics)} '
                              f'has images')
 
+    losses = BagLosses()
+
     def events():
-        for raw in iter_raw(bag, [arm] + list(cam_of_topic)):
-            try:
-                msg = raw.deserialize()
-            except DeserializationError as exc:
-                yield ('corrupt', str(exc))
-                continue
-            if raw.topic != arm:
-                yield ('image', cam_of_topic[raw.topic], stamp_ns(msg.header.stamp), msg)
-            elif inputs.pose_input:
-                yield ('pose', stamp_ns(msg.header.stamp)) + pose_from_msg(msg)
-            else:
-                yield ('joints', stamp_ns(msg.header.stamp), msg.name, msg.position)
+        try:
+            for raw in iter_raw(bag, [arm] + list(cam_of_topic), losses):
+                try:
+                    msg = raw.deserialize()
+                except DeserializationError as exc:
+                    yield ('corrupt', str(exc), raw.topic)
+                    continue
+                if raw.topic != arm:
+                    yield ('image', cam_of_topic[raw.topic], stamp_ns(msg.header.stamp), msg)
+                elif inputs.pose_input:
+                    yield ('pose', stamp_ns(msg.header.stamp)) + pose_from_msg(msg)
+                else:
+                    yield ('joints', stamp_ns(msg.header.stamp), msg.name, msg.position)
+        except BagReadError as exc:
+            raise CalibrateError(str(exc)) from exc
     total = topics[arm][1] + sum(topics[t][1] for t in cam_of_topic)
     info = dict(kind='bag', path=os.path.abspath(str(bag)), arm=inputs.describe_arm())
     return Recording(events, total, info, warnings,
-                     intrinsics=_bag_intrinsics(bag, topics, settings))
+                     intrinsics=_bag_intrinsics(bag, topics, settings), losses=losses)
 
 
 def _bag_intrinsics(bag, topics, settings: Settings):
@@ -168,14 +187,25 @@ def _bag_intrinsics(bag, topics, settings: Settings):
             raise CalibrateError(f'camera {cam}: intrinsics_mode {mode} without an '
                                  f'intrinsics_files entry needs its CameraInfo on {topic}, '
                                  f'which bag {bag} does not have')
-        messages = iter_raw(bag, [topic])
+        # the first CameraInfo that reads: one lost to corruption is no reason to stop
+        losses, error = BagLosses(), None
+        messages = iter_raw(bag, [topic], losses)
         try:
-            msg = next(messages).deserialize()
-            out[cam] = settings.intrinsics.prior_from(cam, camera_from_camera_info(msg, cam))
-        except (DeserializationError, ValueError) as exc:
-            raise CalibrateError(f'camera {cam}: CameraInfo on {topic}: {exc}') from exc
+            for raw in messages:
+                try:
+                    msg = raw.deserialize()
+                    out[cam] = settings.intrinsics.prior_from(cam,
+                                                              camera_from_camera_info(msg, cam))
+                    break
+                except (DeserializationError, ValueError) as exc:
+                    error = error or exc
+        except BagReadError as exc:
+            raise CalibrateError(str(exc)) from exc
         finally:
             messages.close()            # the reader is open until the generator ends
+        if cam not in out:
+            why = error or f'none of its messages is readable ({losses.describe()})'
+            raise CalibrateError(f'camera {cam}: CameraInfo on {topic}: {why}')
     return out
 
 
@@ -233,6 +263,23 @@ def feed(collector: SampleCollector, event) -> List:
     return []
 
 
+def _lost_messages(source, rec: Recording, undecodable):
+    """Return {topic: messages lost} (storage and deserialisation) and a warning, or None."""
+    losses = rec.losses or BagLosses()
+    lost = dict(losses.lost)
+    for topic, n in undecodable.items():
+        lost[topic] = lost.get(topic, 0) + n
+    if not lost:
+        return lost, None
+    counts = ', '.join(f'{t} {n} of {losses.expected.get(t, "?")}'
+                       for t, n in sorted(lost.items()))
+    why = [losses.reasons()] if losses.lost else []
+    if undecodable:
+        why.append(f'{sum(undecodable.values())} did not deserialise')
+    return lost, (f'{source}: {sum(lost.values())} messages lost to corrupt data and not used '
+                  f'({counts}): {"; ".join(why)}')
+
+
 def collect_samples(source, settings: Settings, progress: Callable[[int, int], None] = None,
                     log: Callable[[str], None] = None) -> FrontEnd:
     """Read a bag or a robot_cal_tools folder and turn it into samples (the front end)."""
@@ -266,9 +313,11 @@ def collect_samples(source, settings: Settings, progress: Callable[[int, int], N
         if engine.solve_if_grown() is not None:
             solves += 1
 
-    frame_ids = {}
+    frame_ids, undecodable = {}, {}
     for event in rec.events():
         n += 1
+        if event[0] == 'corrupt' and len(event) > 2:
+            undecodable[event[2]] = undecodable.get(event[2], 0) + 1
         if progress and n % 500 == 0:
             progress(n, rec.total)
         if event[0] == 'image' and event[1] not in frame_ids:
@@ -282,21 +331,29 @@ def collect_samples(source, settings: Settings, progress: Callable[[int, int], N
         add(s)
     if progress:
         progress(rec.total, rec.total)
+    lost, warning = _lost_messages(source, rec, undecodable)
+    if warning:
+        rec.warnings.append(warning)
+        if log:
+            log(warning)
     for r in engine.changes.records:
         if log:
             log(r.summary(store.first_stamp_ns()))
     return FrontEnd(pipe.chain, engine.settings.board, store, dict(collector.image_sizes),
                     dict(collector.counts), rec.warnings, added, n, time.perf_counter() - t0,
                     rec.info, rec.intrinsics, engine.changes if follow else None, solves,
-                    frame_ids)
+                    frame_ids, tuple(sorted(collector.missing_joints)),
+                    collector.seen_joint_names, lost=lost)
 
 
 def solve_and_write(front: FrontEnd, settings: Settings, output_dir) -> OfflineResult:
     """Solve the collected samples with ``settings``' noise model and write the files."""
     if len(front.store) < settings.schedule.min_samples:
+        why = why_few_samples(front.counts, front.missing_joints, front.seen_joint_names)
         raise CalibrateError(f'only {len(front.store)} samples (min_samples '
-                             f'{settings.schedule.min_samples}): did the arm dwell in view of '
-                             f'the cameras? front-end counts: {front.counts}')
+                             f'{settings.schedule.min_samples}): '
+                             f'{why or "did the arm dwell in view of the cameras?"}; '
+                             f'front-end counts: {dict(front.counts)}')
     settings = with_given_intrinsics(settings, front.intrinsics)
     try:
         engine = build_engine(settings, front.chain, front.board)
@@ -315,24 +372,42 @@ def solve_and_write(front: FrontEnd, settings: Settings, output_dir) -> OfflineR
                               total_s=front.time_s + outcome.time_s, messages=front.messages))
     if not outcome.accepted:
         raise CalibrateError(f'calibration failed: {outcome.reason}')
-    os.makedirs(output_dir, exist_ok=True)
-    files = engine.save(output_dir)
+    if not isinstance(output_dir, OutputDirectory):
+        with _output_directory(output_dir) as out:
+            return _write(engine, outcome, report, front, out)
+    return _write(engine, outcome, report, front, output_dir)
+
+
+def _write(engine, outcome, report, front: FrontEnd, out: OutputDirectory) -> OfflineResult:
+    """Write the run's files into ``out``'s staging area, then put them in place as a set."""
+    stage = out.staging
+    engine.save(stage)
     for epoch, cal in sorted(engine.changes.epoch_calibrations.items()):
-        files += [str(f) for f in write_calibration(
-            os.path.join(output_dir, 'epochs', f'epoch_{epoch}'), cal, engine.settings.base_frame,
-            dict(engine.frame_ids))]
-    path = os.path.join(output_dir, 'report.json')
-    atomic_write_text(path, json.dumps(report, indent=1))
-    files.append(path)
-    return OfflineResult(outcome, report, front.warnings, files)
+        write_calibration(os.path.join(stage, 'epochs', f'epoch_{epoch}'), cal,
+                          engine.settings.base_frame, dict(engine.frame_ids))
+    atomic_write_text(os.path.join(stage, 'report.json'), json.dumps(report, indent=1))
+    return OfflineResult(outcome, report, front.warnings, out.commit())
+
+
+def _output_directory(path) -> OutputDirectory:
+    try:
+        return OutputDirectory(path)
+    except OutputDirError as exc:
+        raise CalibrateError(str(exc)) from None
 
 
 def calibrate_bag(source, settings: Settings, output_dir,
                   progress: Callable[[int, int], None] = None,
                   log: Callable[[str], None] = None) -> OfflineResult:
-    """Run the pipeline on a bag or robot_cal_tools folder; write to ``output_dir``."""
-    return solve_and_write(collect_samples(source, settings, progress, log), settings,
-                           output_dir)
+    """
+    Run the pipeline on a bag or robot_cal_tools folder; write to ``output_dir``.
+
+    The directory is checked and locked before the recording is read (a run that cannot write
+    its results fails at once), and the run's files replace the previous run's as a set
+    (:mod:`armcal_ros.io.output_dir`).
+    """
+    with _output_directory(output_dir) as out:
+        return solve_and_write(collect_samples(source, settings, progress, log), settings, out)
 
 
 def make_report(settings: Settings, engine, outcome, front: FrontEnd, timings):
@@ -372,7 +447,8 @@ def make_report(settings: Settings, engine, outcome, front: FrontEnd, timings):
         chosen=(dict(cal.hyperparameters) if cal is not None else {}),
         accepted=bool(outcome.accepted), message=outcome.reason,
         n_samples=len(engine.store), samples=front.added, cameras=cams,
-        front_end=dict(front.counts), warnings=front.warnings, timings=timings,
+        front_end=dict(front.counts), lost_messages=dict(front.lost), warnings=front.warnings,
+        timings=timings,
         stages=[list(s) for s in (outcome.result.stages if outcome.result else [])],
         changes=_changes_report(engine, front))
 
@@ -399,10 +475,16 @@ def _json_safe_record(r):
 def format_table(report):
     """Return the short table printed by the CLI."""
     chosen = report.get('chosen', {})
-    lines = [f'noise model {report["noise_model"]}: {report["n_samples"]} samples; '
-             f'{report["message"]}']
-    if report['noise_model'] == 'auto' and chosen:
-        lines.append(f'auto chose {chosen.get("model")}: {chosen.get("auto_reason", "")}')
+    message = report['message']
+    reason = chosen.get('auto_reason', '') if report['noise_model'] == 'auto' else ''
+    if reason and message.startswith(reason):
+        # The solve's message opens with auto's reason: say it once.
+        message = message[len(reason):].lstrip('; ')
+    lines = [f'noise model {report["noise_model"]}: {report["n_samples"]} samples'
+             + (f'; {message}' if message else '')]
+    if reason:
+        lines.append(f'auto {reason}' if reason.startswith('chose') else
+                     f'auto chose {chosen.get("model")}: {reason}')
     if chosen.get('pixel_sigma') is not None:
         lines.append(f'image noise {chosen["pixel_sigma"]:.3f} px '
                      f'({chosen.get("pixel_sigma_source", "given")}); uncertainty: '
@@ -442,7 +524,14 @@ def add_arguments(p):
     p.add_argument('--output', required=True, metavar='DIR', help='where to write the files')
     p.add_argument('--noise-model', default=None,
                    help='override the parameter file\'s noise_model')
-    p.add_argument('--quiet', action='store_true', help='no progress or log lines')
+    p.add_argument('--quiet', action='store_true',
+                   help='print nothing but errors and lost or skipped input (the results are '
+                        'in DIR: report.json)')
+
+
+def _is_loss(message):
+    """Whether a log line reports input that was lost or skipped (printed even when quiet)."""
+    return any(w in message for w in ('lost', 'not calibrated'))
 
 
 def run(args):
@@ -457,18 +546,24 @@ def run(args):
         raise CalibrateError('parameter marker_type: a robot_cal_tools folder holds a ChArUco '
                              f'board, not a {settings.target.marker_type}; set charuco')
 
+    # Progress only on a terminal: '\r' updates in a CI log make one line of kilobytes.
+    live = not args.quiet and sys.stderr.isatty()
+
     def progress(i, n):
-        if not args.quiet:
+        if live:
             print(f'\r  {i}/{n} messages ({100.0 * i / max(n, 1):.0f} %)', end='',
                   file=sys.stderr, flush=True)
 
     def log(message):
-        if not args.quiet:
-            print(f'\n[armcal] {message}', file=sys.stderr)
+        # Quiet means quiet, but for what was lost or skipped: that is never hidden.
+        if not args.quiet or _is_loss(message):
+            print(('\n' if live else '') + f'[armcal] {message}', file=sys.stderr)
 
     res = calibrate_bag(args.bag, settings, args.output, progress, log)
-    if not args.quiet:
+    if live:
         print('', file=sys.stderr)
+    if args.quiet:
+        return 0
     print(format_table(res.report))
     tgt = res.report.get('target')
     where = (settings.robot.base_frame if settings.target.eye_in_hand

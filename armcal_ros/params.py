@@ -13,7 +13,7 @@ knobs.  :mod:`armcal_ros.settings` turns checked values into typed settings.
 import math
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Dict, Optional
 
 import yaml
@@ -300,6 +300,24 @@ PARAMS = [
           'or transform_stamped (geometry_msgs/TransformStamped); a bag says its own type',
           _one_of(POSE_TYPES)),
 ]
+#: Largest valid values (the smallest are in the table).  Not tuning: bounds past which a value
+#: is a typo or a unit slip, sized from physics with a wide margin - an image noise of tens of
+#: pixels leaves no calibration in the data, an arm error of a metre is no arm, a marker or
+#: board is not metres across.  Without them a finite but absurd value (pixel_sigma 1e300)
+#: overflowed deep in the solver instead of being refused here.
+_MAXIMA = {
+    'pixel_sigma': 50.0, 'point_sigma': 1.0, 'bias_sigma': 1.0, 'coherence_length': 100.0,
+    'solve_period': 86400.0, 'robust_loss_scale': 1000.0, 'outlier_gate_sigmas': 1000.0,
+    'max_marker_speed': 100.0, 'dwell_radius': 1.0, 'min_sample_spacing': 1.0,
+    'max_sample_age': 10.0 * 365 * 86400, 'sphere_min_radius_px': 10000.0,
+    'sphere_max_radius_px': 10000.0, 'aruco_size': 10.0, 'charuco_square_size': 10.0,
+    'charuco_marker_size': 10.0, 'marker_radius': 1.0, 'intrinsics_sigma_px': 100000.0,
+    'intrinsics_sigma_dist': 100.0, 'min_samples': 1000000, 'max_samples': 10000000,
+    'min_new_samples': 1000000, 'recalibration_samples': 1000000, 'charuco_rows': 1000,
+    'charuco_cols': 1000, 'max_views_per_dwell': 1000,
+}
+PARAMS = [replace(p, maximum=_MAXIMA[p.name]) if p.name in _MAXIMA and p.maximum is None else p
+          for p in PARAMS]
 BY_NAME = {p.name: p for p in PARAMS}
 
 
@@ -342,6 +360,16 @@ def check_value(name, value):
         raise ValueError(f'unknown parameter {name!r}')
     p = BY_NAME[name]
     v = _coerce(p, value)
+    if p.type in ('double', 'int'):
+        # NaN compares False both ways: refused here, whatever the table's own check says.
+        if not math.isfinite(v):
+            raise ValueError(f'parameter {name}: must be a finite number (got {value!r})')
+        if p.maximum is not None and v > p.maximum:
+            raise ValueError(f'parameter {name}: must be <= {p.maximum:g} (got {value!r})')
+        if p.minimum is not None and v < p.minimum:
+            raise ValueError(f'parameter {name}: must be >= {p.minimum:g} (got {value!r})')
+    elif p.type == 'double[]' and not all(math.isfinite(x) for x in v):
+        raise ValueError(f'parameter {name}: every value must be a finite number (got {value!r})')
     if p.check is not None:
         why = p.check(v)
         if why:
@@ -502,3 +530,31 @@ def ros_home():
 def default_camera_info_dir():
     """Return $ROS_HOME/camera_info: where camera_info_manager's default URL points."""
     return os.path.join(ros_home(), 'camera_info')
+
+
+def number_arg(kind=float, minimum=None, maximum=None, above=None):
+    """
+    Return an argparse ``type`` that reads a finite number within bounds, else refuses it.
+
+    ``minimum`` and ``maximum`` are inclusive, ``above`` an exclusive lower bound.  argparse
+    turns the refusal into one usage line naming the option (``--duration nan`` made the
+    simulator loop for ever; a finite absurd value is refused as well).
+    """
+    import argparse
+
+    def parse(text):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'expected {kind.__name__}, got {text!r}') from None
+        if not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f'must be a finite number, got {text!r}')
+        if above is not None and not v > above:
+            raise argparse.ArgumentTypeError(f'must be > {above:g}, got {text!r}')
+        if minimum is not None and v < minimum:
+            raise argparse.ArgumentTypeError(f'must be >= {minimum:g}, got {text!r}')
+        if maximum is not None and v > maximum:
+            raise argparse.ArgumentTypeError(f'must be <= {maximum:g}, got {text!r}')
+        return v
+    parse.__name__ = kind.__name__     # argparse names the type in its messages
+    return parse

@@ -327,6 +327,11 @@ def main():
     print(text)
     if not args.no_write:
         write_section('node', text)
+        for r in runs:      # 17 000 latencies per run: their summary is enough in the file
+            il = np.array(r.pop('info_latency_s'))
+            r['info_latency_ms'] = dict(
+                median=float(np.median(il) * 1e3) if len(il) else None,
+                p95=float(np.percentile(il, 95) * 1e3) if len(il) else None)
         write_json('node', dict(reference_dwells=reference, runs=runs, best_rate=best,
                                 machine=machine()))
 

@@ -166,3 +166,31 @@ def test_collector_without_a_robot_model_takes_poses_not_joint_states():
     assert col.add_pose(0, [0, 0, 0], [0, 0, 0, 1]) == []
     assert col.add_pose(1, [0, 0, 0], [0, 0, 0, 5]) == []
     assert col.counts['poses'] == 2 and col.counts['pose_invalid'] == 1
+
+
+def test_frames_of_another_size_or_absurdly_large_are_counted_and_skipped():
+    col = SampleCollector(None, [0, 0, 0.1], ['cam'], {'cam': RecordingDetector(iter(
+        lambda: [], None))})
+    assert col._detect('cam', _image_msg(np.full((24, 32), 9, np.uint8))) == []
+    assert col.image_sizes['cam'] == (32, 24)
+    col._detect('cam', _image_msg(np.full((48, 64), 9, np.uint8)))
+    assert col.counts['image_size_changed'] == 1 and col.image_sizes['cam'] == (32, 24)
+    col._detect('cam', _image_msg(np.zeros((2000, 2500), np.uint8)))      # 5 MB
+    assert col.counts['image_oversize'] == 1
+    assert col.counts['detections'] + col.counts['frames_no_marker'] == 1
+
+
+def test_why_few_samples_names_the_missing_joints_and_other_causes():
+    from armcal_ros.frontend.collector import why_few_samples
+    text = why_few_samples({'joint_states': 100, 'joint_state_missing_joint': 100,
+                            'frames': 50}, ('shoulder_pan_joint', 'elbow_joint'),
+                           ('joint_1', 'joint_2'))
+    assert 'elbow_joint' in text and 'shoulder_pan_joint' in text and 'joint_1' in text
+    assert "robot's URDF" in text
+    assert 'image_topics' in why_few_samples({'joint_states': 100})
+    assert 'clock' in why_few_samples({'joint_states': 100, 'frames': 50, 'frames_gap': 50})
+    assert 'still' in why_few_samples({'joint_states': 100, 'frames': 50, 'frames_moving': 50})
+    assert 'marker_type' in why_few_samples({'joint_states': 100, 'frames': 50,
+                                             'frames_still': 20, 'frames_no_marker': 20})
+    assert why_few_samples({'joint_states': 100, 'frames': 50, 'frames_still': 20,
+                            'detections': 20}) == ''

@@ -10,6 +10,7 @@ timestamp (tens of mm at arm speed) or a wrong marker offset fails them.
 """
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -67,11 +68,18 @@ def _check_against_truth(out_dir, gt_dir, names=('cam1', 'cam2', 'cam3')):
 def test_cli_calibrates_each_noise_model_close_to_truth(sim_bag, tmp_path, model):
     bag, params = sim_bag
     out = tmp_path / 'out'
+    quiet = ['--quiet'] if model != 'auto' else []
     proc = subprocess.run([sys.executable, '-m', 'armcal_ros.cli', 'calibrate', str(bag),
                            '--params', str(params), '--output', str(out), '--noise-model',
-                           model, '--quiet'], capture_output=True, text=True, timeout=300)
+                           model] + quiet, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
-    assert f'noise model {model}' in proc.stdout and 'cam3' in proc.stdout
+    if quiet:
+        assert proc.stdout == '' and proc.stderr == '', 'quiet means quiet'
+    else:
+        assert f'noise model {model}' in proc.stdout and 'cam3' in proc.stdout
+        # auto's choice is said once, and a log that is not a terminal gets no '\r' updates.
+        assert proc.stdout.count('chose ') == 1, proc.stdout
+        assert '\r' not in proc.stderr
     report = json.loads((out / 'report.json').read_text())
     assert report['noise_model'] == model and report['accepted']
     for c in report['cameras'].values():
@@ -85,7 +93,13 @@ def test_missing_camera_topic_is_reported_and_others_calibrate(sim_bag, tmp_path
     cut = tmp_path / 'no_cam3'
     _copy_bag(bag, cut, lambda r: None if r.topic == '/cam3/image_raw' else r.rawdata)
     logs = []
+    # An earlier run of three cameras wrote into the same directory: its cam3.yaml must not
+    # stay beside an extrinsics.yaml that no longer lists cam3.
+    shutil.copytree(bag / 'ground_truth', tmp_path / 'out')
+    (tmp_path / 'out' / 'calibration.json').write_text(
+        json.dumps({'cameras': {c: {} for c in ('cam1', 'cam2', 'cam3')}}))
     res = calibrate_bag(cut, load_settings(params), tmp_path / 'out', log=logs.append)
+    assert not (tmp_path / 'out' / 'cam3.yaml').exists()
     assert any('cam3' in w and 'no messages' in w for w in res.warnings)
     assert any('cam3' in m for m in logs)
     assert res.report['cameras']['cam3']['status'] == 'not calibrated'
@@ -143,6 +157,54 @@ def test_clear_errors_for_unusable_input(sim_bag, tmp_path):
                           timeout=60)
     assert proc.returncode != 0 and 'noise_model' in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_the_output_directory_is_checked_before_the_bag_is_read(sim_bag, tmp_path, monkeypatch):
+    import armcal_ros.offline as offline
+    bag, params = sim_bag
+    monkeypatch.setattr(offline, 'collect_samples', lambda *a, **k: pytest.fail('read first'))
+    (tmp_path / 'file').write_text('x')
+    with pytest.raises(CalibrateError, match='not a directory'):
+        calibrate_bag(bag, load_settings(params), tmp_path / 'file')
+    with pytest.raises(CalibrateError, match='cannot be created'):
+        calibrate_bag(bag, load_settings(params), tmp_path / 'file' / 'out')
+
+
+def test_the_wrong_robots_urdf_is_named_with_the_joints(sim_bag, tmp_path):
+    bag, _ = sim_bag
+    params = tmp_path / 'ur5.yaml'
+    params.write_text('armcal:\n  ros__parameters:\n'
+                      f'    robot_description_file: {ROOT}/urdf/ur5.urdf\n'
+                      '    marker_link: tool0\n    min_samples: 15\n')
+    with pytest.raises(CalibrateError) as err:
+        calibrate_bag(bag, load_settings(params), tmp_path / 'out')
+    text = str(err.value)
+    assert 'shoulder_pan_joint' in text and 'joint_1' in text and "robot's URDF" in text, text
+
+
+def test_ctrl_c_ends_calibrate_with_one_line_and_status_130(sim_bag, tmp_path):
+    import signal
+    import time
+    bag, params = sim_bag
+    out = tmp_path / 'out'
+    out.mkdir()
+    (out / 'cam1.yaml').write_text('an earlier result')
+    proc = subprocess.Popen([sys.executable, '-m', 'armcal_ros.cli', 'calibrate', str(bag),
+                             '--params', str(params), '--output', str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # The staging area appears once the directory is locked, before the bag is read (the
+    # whole run takes ~3 s): interrupt then, mid-run.
+    deadline = time.monotonic() + 60
+    while not any(p.name.startswith('.armcal-staging') for p in out.iterdir()):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr
+    assert 'Traceback' not in stderr
+    assert stderr.strip().splitlines()[-1] == 'armcal calibrate: interrupted'
+    assert (out / 'cam1.yaml').read_text() == 'an earlier result'
+    assert sorted(p.name for p in out.iterdir()) == ['.armcal.lock', 'cam1.yaml']
 
 
 def test_bag_is_real_rosbag2(sim_bag):

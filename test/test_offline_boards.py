@@ -38,7 +38,7 @@ def folder(tmp_path_factory):
 def test_calibrate_a_folder_end_to_end(folder, tmp_path, capsys):
     out = str(tmp_path / 'out')
     args = argparse.Namespace(bag=folder, params=params(tmp_path / 'p.yaml'), output=out,
-                              noise_model=None, quiet=True)
+                              noise_model=None, quiet=False)
     assert run(args) == 0
     printed = capsys.readouterr().out
     assert 'T_tool0_target' in printed and '(estimated)' in printed
@@ -68,7 +68,7 @@ def test_the_real_folder_through_armcal_calibrate(tmp_path, capsys):
     # "Real data", seeded column: fx 1351.7, cy 626.9, 1.138 px over 384 of 384 corners).
     out = tmp_path / 'out'
     args = argparse.Namespace(bag=REAL, params=os.path.join(ROOT, 'config', 'rct_charuco.yaml'),
-                              output=str(out), noise_model=None, quiet=True)
+                              output=str(out), noise_model=None, quiet=False)
     assert run(args) == 0
     with open(out / 'report.json') as f:
         report = json.load(f)
@@ -82,7 +82,7 @@ def test_the_real_folder_through_armcal_calibrate(tmp_path, capsys):
 
 def test_wrong_board_parameters_are_named(folder, tmp_path):
     args = argparse.Namespace(bag=folder, params=params(tmp_path / 'p.yaml', charuco_rows=6),
-                              output=str(tmp_path / 'out'), noise_model=None, quiet=True)
+                              output=str(tmp_path / 'out'), noise_model=None, quiet=False)
     with pytest.raises(CalibrateError, match='charuco_rows'):
         run(args)
 
@@ -90,7 +90,7 @@ def test_wrong_board_parameters_are_named(folder, tmp_path):
 def test_unknown_mount_without_estimation_is_refused(folder, tmp_path):
     args = argparse.Namespace(
         bag=folder, params=params(tmp_path / 'p.yaml', estimate_marker_offset=False),
-        output=str(tmp_path / 'out'), noise_model=None, quiet=True)
+        output=str(tmp_path / 'out'), noise_model=None, quiet=False)
     with pytest.raises(CalibrateError, match='estimate_marker_offset or target_pose_guess'):
         run(args)
 
@@ -118,11 +118,11 @@ def test_pose_input_needs_a_board_and_the_topic(board_pose_bag, tmp_path):
     p = params(tmp_path / 'p.yaml', pose_topic='/nope', **BOARD_SIZE)
     with pytest.raises(CalibrateError, match='pose_topic /nope'):
         run(argparse.Namespace(bag=board_pose_bag, params=p, output=str(tmp_path / 'o'),
-                               noise_model=None, quiet=True))
+                               noise_model=None, quiet=False))
     p = params(tmp_path / 'q.yaml', pose_topic='/tool_pose')
     with pytest.raises(CalibrateError, match='charuco_rows'):
         run(argparse.Namespace(bag=board_pose_bag, params=p, output=str(tmp_path / 'o'),
-                               noise_model=None, quiet=True))
+                               noise_model=None, quiet=False))
 
 
 def test_charuco_with_joint_states_takes_the_joint_front_end(board_pose_bag, tmp_path):
@@ -131,7 +131,7 @@ def test_charuco_with_joint_states_takes_the_joint_front_end(board_pose_bag, tmp
     p = params(tmp_path / 'p.yaml', robot_description='<robot name="x"/>', **BOARD_SIZE)
     with pytest.raises(CalibrateError, match='joint_states_topic'):
         run(argparse.Namespace(bag=board_pose_bag, params=p, output=str(tmp_path / 'o'),
-                               noise_model=None, quiet=True))
+                               noise_model=None, quiet=False))
     from armcal_ros.compose import build_board
     from armcal_ros.params import defaults
     from armcal_ros.settings import settings_from_values
@@ -161,7 +161,7 @@ def test_charuco_with_joint_input_calibrates_through_the_cli(board_joint_bag, tm
     out = tmp_path / 'out'
     p = joint_params(tmp_path / 'p.yaml', board_joint_bag)
     assert run(argparse.Namespace(bag=str(board_joint_bag / 'bag'), params=p, output=str(out),
-                                  noise_model=None, quiet=True)) == 0
+                                  noise_model=None, quiet=False)) == 0
     report = json.loads((out / 'report.json').read_text())
     assert report['accepted'] and report['n_samples'] == 8
     assert report['front_end']['frames_moving'] >= 8 * 3

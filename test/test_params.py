@@ -30,11 +30,23 @@ def test_defaults_pass_their_own_checks():
     ('min_samples', 2.5, 'expected int'),
     ('free_distortion', ['k7'], 'unknown terms'),
     ('publish_tf', 1, 'expected bool'),
+    ('pixel_sigma', 1e300, '<= 50'),
+    ('pixel_sigma', float('nan'), 'finite'),
+    ('point_sigma', float('inf'), 'finite'),
+    ('marker_offset', [0.0, float('nan'), 0.0], 'finite'),
+    ('max_samples', 10 ** 12, '<= 1e+07'),
+    ('camera_info_names', ['front/rgb'], 'A-Za-z0-9_'),
 ])
 def test_bad_values_are_refused_with_name_and_reason(name, value, why):
     with pytest.raises(ValueError) as err:
         check_value(name, value)
     assert name in str(err.value) and why in str(err.value)
+
+
+def test_an_integer_is_a_valid_double():
+    v = check_value('pixel_sigma', 1)
+    assert v == 1.0 and isinstance(v, float)
+    assert check_value('marker_offset', [0, 0, 1]) == [0.0, 0.0, 1.0]
 
 
 def test_cross_parameter_rules():

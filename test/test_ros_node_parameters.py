@@ -57,7 +57,11 @@ def test_descriptors_declare_types_ranges_and_read_only(ros_context, tmp_path):
     (dict(noise_model='gaussian'), ['noise_model', 'must be one of']),
     (dict(camera_names=['cam1', 'cam2']), ['camera_names', 'image_topics', 'same length']),
     (dict(marker_link='no_such_link'), ['marker_link', 'no_such_link']),
-    (dict(pixel_sigma=1), ['pixel_sigma', 'double']),
+    (dict(pixel_sigma='one'), ['pixel_sigma', 'double']),
+    (dict(output_dir='/proc/armcal_out'), ['output_dir', '/proc/armcal_out']),
+    (dict(pixel_sigma=1e300), ['pixel_sigma', '50']),
+    (dict(point_sigma=float('nan')), ['point_sigma', 'nan']),
+    (dict(marker_offset=[0.0, float('inf'), 0.0]), ['marker_offset', 'finite']),
     (dict(pose_topic='/flange_pose', noise_model='kinematic'), ['noise_model', 'pose_topic']),
     (dict(intrinsics_mode=['prior'], intrinsics_files=['a.yaml'] * 3),
      ['intrinsics_mode', 'intrinsics_sigma_px']),
@@ -70,6 +74,55 @@ def test_bad_parameters_refuse_the_start(ros_context, tmp_path, extra, words):
         CalibratorNode(context=ros_context, parameter_overrides=_overrides(tmp_path, **extra))
     for w in words:
         assert w in str(err.value)
+
+
+def test_an_integer_is_a_valid_double_at_start_and_at_runtime(ros_context, tmp_path):
+    """One rule with the offline CLI, which reads `pixel_sigma: 1` as 1.0."""
+    from rclpy.parameter import Parameter
+
+    from armcal_ros.ros.node import CalibratorNode
+    from armcal_ros.settings import settings_from_values
+    node = CalibratorNode(context=ros_context, parameter_overrides=_overrides(
+        tmp_path, pixel_sigma=1, marker_offset=[0, 0, 1]))
+    try:
+        assert node.engine.settings.solver.pixel_sigma == 1.0
+        assert isinstance(node.values['pixel_sigma'], float)
+        assert node.values['marker_offset'] == [0.0, 0.0, 1.0]
+        r = node.set_parameters([Parameter('point_sigma', value=1)])[0]
+        assert r.successful, r.reason
+        assert node.values['point_sigma'] == 1.0
+        r = node.set_parameters([Parameter('point_sigma', value='x')])[0]
+        assert not r.successful and 'point_sigma' in r.reason and 'double' in r.reason
+        # The same values through the CLI's path give the same settings.
+        assert settings_from_values(dict(node.values)).solver.pixel_sigma == 1.0
+    finally:
+        node.close(solve_timeout=1.0)
+        node.destroy_node()
+
+
+def test_an_absurdly_large_image_is_counted_and_never_queued(ros_context, tmp_path):
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import Image
+
+    from armcal_ros.ros.node import CalibratorNode
+    node = CalibratorNode(context=ros_context, parameter_overrides=_overrides(tmp_path))
+
+    def raw(w, h):
+        return serialize_message(Image(width=w, height=h, step=w, encoding='mono8',
+                                       data=bytes(w * h)))
+    try:
+        node.queue.close()          # nothing is taken out: the queue shows what was put in
+        callback = node._image_callback('cam1', Image)
+        sizes = []
+        node.queue.put = lambda kind, item: sizes.append(len(item[1]._raw))
+        callback(raw(640, 480))
+        callback(raw(4000, 2000))       # 8 MB after 0.3 MB frames
+        callback(raw(640, 480))
+        assert sizes == [len(raw(640, 480))] * 2
+        assert node.node_state().input_counts['image_oversize'] == 1
+    finally:
+        node.close(solve_timeout=1.0)
+        node.destroy_node()
 
 
 def test_runtime_parameter_sets_are_checked(ros_context, tmp_path):

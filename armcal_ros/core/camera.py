@@ -245,11 +245,12 @@ def project_with_jacobians(intr, dist, R, t, X) -> ProjectionJacobians:
     b[:, 1, 1] = iz
     b[:, 0, 2] = -xn * iz
     b[:, 1, 2] = -yn * iz
-    d_xc = np.einsum('nij,njk->nik', a, b)          # (n, 2, 3) = d uv / d Xc
+    # Batched products by matmul: einsum's generic loop took 4x as long for these small blocks.
+    d_xc = a @ b                                    # (n, 2, 3) = d uv / d Xc
 
     d_point = d_xc @ R
     d_pose = np.empty((n, 2, 6))
-    d_pose[:, :, :3] = -np.einsum('nij,njk->nik', d_xc, skew(RX))
+    d_pose[:, :, :3] = -(d_xc @ skew(RX))
     d_pose[:, :, 3:] = d_xc
     return ProjectionJacobians(uv, d_intr, d_dist, d_pose, d_point, z)
 

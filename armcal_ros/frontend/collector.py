@@ -35,6 +35,13 @@ from armcal_ros.robot.kinematics import KinematicChain
 #: Distance (m) of the points whose motion stands for the scene's in a camera riding on the arm.
 CAMERA_ON_LINK_REFERENCE_M = 1.0
 
+#: An image this many times larger than the camera's first (and over OVERSIZE_BYTES) is not
+#: one of its frames: skipped undecoded and counted (a 50 MB message on a VGA camera's topic
+#: would otherwise be decoded and searched for seconds).  Compressed frames vary by a factor of
+#: two or three with the scene; a factor of 8 leaves them alone.
+OVERSIZE_FACTOR = 8
+OVERSIZE_BYTES = 4_000_000
+
 
 class RateLimitedLog:
     """Call ``log(message)`` at most once per ``period_s`` for each key (first time at once)."""
@@ -145,6 +152,11 @@ class SampleCollector:
         self.counts = collections.Counter()
         self.image_sizes: Dict[str, tuple] = {}
         self.log = RateLimitedLog(log)
+        #: The robot model's joints that joint states lacked, and the names the last such
+        #: message carried: what a wrong URDF or a renamed joint looks like.
+        self.missing_joints = frozenset()
+        self.seen_joint_names = ()
+        self._typical_bytes: Dict[str, int] = {}
 
     def _count(self, key, message=None):
         self.counts[key] += 1
@@ -166,6 +178,14 @@ class SampleCollector:
             return []
         if status is JointStatus.TIME_JUMP:
             self._count('time_jump', 'joint state time jumped backwards: joint history reset')
+        elif status is JointStatus.MISSING_JOINT:
+            missing = tuple(getattr(self.pairer.history, 'missing', ()))
+            # Replaced, not updated: the node's diagnostics read it from another thread.
+            self.missing_joints = self.missing_joints | frozenset(missing)
+            self.seen_joint_names = tuple(str(n) for n in names)
+            self._count('joint_state_missing_joint',
+                        f'joint state rejected: it lacks joint(s) {list(missing)} of the robot '
+                        f'model (it has {list(self.seen_joint_names)})')
         elif status is not JointStatus.OK:
             self._count(f'joint_state_{status.value}',
                         f'joint state rejected: {status.value}')
@@ -241,6 +261,12 @@ class SampleCollector:
         return samples
 
     def _detect(self, camera, msg):
+        nbytes = len(getattr(msg, 'data', b''))
+        typical = self._typical_bytes.get(camera)
+        if typical is not None and nbytes > OVERSIZE_FACTOR * typical and nbytes > OVERSIZE_BYTES:
+            self._count('image_oversize', f'{camera}: image of {nbytes / 1e6:.1f} MB, its '
+                        f'images are about {typical / 1e6:.2f} MB')
+            return ()
         try:
             image = decode_image_msg(msg)
         except ImageDecodeError as exc:
@@ -250,7 +276,17 @@ class SampleCollector:
             self._count('image_malformed', f'{camera}: malformed image message: {exc}')
             return ()
         h, w = image.shape[:2]
+        known = self.image_sizes.get(camera)
+        if known is not None and known != (w, h):
+            # A camera's size is part of its calibration: a frame of another size is a wrong
+            # message, or the driver changed resolution (then restart the calibrator).
+            self._count('image_size_changed', f'{camera}: image of {w}x{h}, its images are '
+                        f'{known[0]}x{known[1]} (a new resolution needs a new calibration: '
+                        f'restart the calibrator with a fresh output_dir)')
+            return ()
         self.image_sizes[camera] = (w, h)
+        if typical is None:
+            self._typical_bytes[camera] = max(nbytes, 1)
         dets = self.detectors[camera].detect(image)
         if self.board is not None and len(self.board.points) == 1:
             # A point marker as a one-point target: whatever its id, a detection is point 0.
@@ -260,3 +296,38 @@ class SampleCollector:
         else:
             self.counts['frames_no_marker'] += 1
         return dets
+
+
+def why_few_samples(counts, missing_joints=(), seen_joint_names=()) -> str:
+    """
+    Say from the front end's counts why a recording gave few or no samples (one sentence).
+
+    The commonest causes, checked in the order the pipeline meets them: the arm's stream does
+    not fit the robot model (joint names), no images, images and arm never overlapping in time,
+    an arm that never held still, a marker that is never found.  Returns '' when the counts
+    show none of them.
+    """
+    js = counts.get('joint_states', 0)
+    frames = counts.get('frames', 0)
+    missing = counts.get('joint_state_missing_joint', 0)
+    if js and missing >= 0.9 * js:
+        return (f'{missing} of {js} joint states lack joint(s) {sorted(missing_joints)} named '
+                f'in the robot model (they carry {list(seen_joint_names)}): is this the '
+                f'robot\'s URDF, and marker_link the right link?')
+    if js == 0 and counts.get('poses', 0) == 0:
+        return 'no joint state (or pose) was read: check joint_states_topic (or pose_topic)'
+    if frames == 0:
+        return 'no image was read: check image_topics'
+    unpaired = sum(counts.get(f'frames_{k}', 0) for k in
+                   ('empty', 'before_history', 'after_history', 'gap', 'stale', 'time_jump'))
+    if unpaired >= 0.9 * frames:
+        return (f'{unpaired} of {frames} images found no joint states around their stamps: do '
+                f'the images and the arm share one clock (header stamps)?')
+    still = counts.get('frames_still', 0)
+    if still == 0:
+        return (f'none of {frames} images was taken while the marker was still (slower than '
+                f'max_marker_speed): did the arm pause in view of the cameras?')
+    if counts.get('detections', 0) == 0:
+        return (f'the marker was found in none of {still} still images: check marker_type and '
+                f'its detector parameters (e.g. sphere_min/max_radius_px)')
+    return ''

@@ -1,11 +1,13 @@
 """
-A thin layer over ``rosbags`` (0.11) for reading and writing rosbag2 bags without ROS.
+A thin layer over ``rosbags`` (0.11) for writing rosbag2 bags without ROS, and the reading API.
 
 Writing: :class:`BagWriter` writes real rosbag2 bags (metadata version 9, CDR) in ``mcap`` (the
 default) or ``sqlite3`` storage, with message definitions from the Jazzy typestore
 (``Stores.ROS2_JAZZY``), so ``ros2 bag`` and rclpy read them.  It knows the three message types the
 calibrator consumes: ``sensor_msgs/msg/JointState``, ``sensor_msgs/msg/Image`` and
-``sensor_msgs/msg/CompressedImage``, each with a proper ``std_msgs/Header``.
+``sensor_msgs/msg/CompressedImage``, each with a proper ``std_msgs/Header``.  It checksums what it
+writes (each mcap chunk's CRC, a CRC per sqlite3 message), so a reader can tell a corrupted
+message from a good one.
 
 Compression: rosbags 0.11 supports zstd only.  For mcap it offers chunk compression
 (``CompressionMode.STORAGE``: each ~1 MiB chunk is zstd-compressed inside the .mcap file, which is
@@ -13,23 +15,23 @@ what ``ros2 bag record --storage-preset-profile zstd_fast`` produces and what ev
 decodes); ``MESSAGE`` (per message) and ``FILE`` (whole file) modes exist too but are deprecated in
 rosbag2 itself.  ``compress=True`` selects chunk compression for mcap and is ignored for sqlite3.
 
-Reading: :func:`iter_raw` yields :class:`RawMessage` records whose ``deserialize()`` a caller may
-wrap in ``try/except DeserializationError`` to skip a corrupt message and keep going;
-:func:`iter_messages` does that for you when ``skip_errors=True``.  :func:`bag_topics` lists
-topics, types and counts.
+Reading (:func:`iter_raw`, :func:`iter_messages`, :func:`bag_topics`, with every lost message
+of a corrupt bag counted) lives in :mod:`armcal_ros.io.bag_reading` and is re-exported here.
 """
 
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+import struct
+import zlib
 
 import cv2
 import numpy as np
-from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
-from rosbags.typesys import get_typestore, Stores
 from scipy.spatial.transform import Rotation
+
+from armcal_ros.io.bag_reading import (  # noqa: F401 - the reading API, re-exported
+    _message_crc, _U64, bag_topics, BagLosses, BagLossWarning, BagReadError, CRC_TABLE,
+    DeserializationError, iter_messages, iter_raw, jazzy_typestore, RawMessage, STORAGES)
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 IMAGE = 'sensor_msgs/msg/Image'
@@ -40,16 +42,6 @@ TRANSFORM_STAMPED = 'geometry_msgs/msg/TransformStamped'
 
 IMAGE_ENCODINGS = ('mono8', 'rgb8', 'bgr8')
 COMPRESSED_FORMATS = ('png', 'jpeg')
-STORAGES = ('mcap', 'sqlite3')
-
-
-class DeserializationError(ValueError):
-    """A message in a bag could not be deserialised (corrupt or truncated data)."""
-
-
-def jazzy_typestore():
-    """Return the rosbags typestore with the ROS 2 Jazzy message definitions."""
-    return get_typestore(Stores.ROS2_JAZZY)
 
 
 def split_stamp(t_ns):
@@ -131,11 +123,15 @@ class BagWriter:
     def __enter__(self):
         """Open the bag."""
         self._writer.open()
+        self._finish = _add_checksums(self._writer.storage)
         return self
 
     def __exit__(self, exc_type, exc, tb):
         """Close the bag (writing its index and metadata), or abort it on an exception."""
-        return self._writer.__exit__(exc_type, exc, tb)
+        result = self._writer.__exit__(exc_type, exc, tb)
+        if exc_type is None and self._finish is not None:
+            self._finish()
+        return result
 
     def connection(self, topic, msgtype):
         """Return (creating once) the connection for ``topic`` with ``msgtype``."""
@@ -250,70 +246,41 @@ class BagWriter:
         self.write_message(topic, COMPRESSED_IMAGE, stamp_ns if log_ns is None else log_ns, msg)
 
 
-@dataclass
-class RawMessage:
-    """One message as stored: call ``deserialize()`` to decode it (may raise)."""
+def _add_checksums(storage):
+    """
+    Make a rosbags storage writer checksum what it writes; return what to run once it is closed.
 
-    topic: str
-    msgtype: str
-    t_ns: int
-    rawdata: bytes
-    _decode: Callable
+    mcap: each chunk's ``uncompressed_crc`` (rosbags writes 0, "not computed") becomes the CRC-32
+    of its records, as the mcap C++ writer behind ``ros2 bag record`` writes it.  sqlite3: a
+    :data:`CRC_TABLE` row per message.  A rosbags writer unlike 0.11's gets no checksums.
+    """
+    if hasattr(storage, 'compressor') and hasattr(storage, 'chunks'):
+        compress, crcs = storage.compressor, []
 
-    def deserialize(self):
-        """Decode the CDR bytes; raises :class:`DeserializationError` on corrupt data."""
-        try:
-            return self._decode(self.rawdata, self.msgtype)
-        except Exception as err:  # rosbags raises several types on truncated CDR
-            raise DeserializationError(
-                f'{self.topic} at t={self.t_ns} ns: cannot deserialise {self.msgtype}: {err}'
-            ) from err
+        def compressor(data):
+            crcs.append(zlib.crc32(data))
+            return compress(data)
 
-
-def _open_reader(path):
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f'bag {path} does not exist')
-    return AnyReader([path], default_typestore=jazzy_typestore())
-
-
-def iter_raw(path, topics=None):
-    """Yield :class:`RawMessage` for every message (in bag-time order), optionally by topic."""
-    with _open_reader(path) as reader:
-        conns = reader.connections
-        if topics is not None:
-            wanted = set(topics)
-            conns = [c for c in conns if c.topic in wanted]
-            if not conns:
+        def patch():
+            if len(crcs) != len(storage.chunks):
                 return
-        for conn, t_ns, raw in reader.messages(connections=conns):
-            yield RawMessage(conn.topic, conn.msgtype, t_ns, raw,
-                             reader.typestore.deserialize_cdr)
+            with open(storage.path, 'r+b') as f:
+                for index, crc in zip(storage.chunks, crcs):
+                    f.seek(_U64.unpack_from(index.getvalue(), 16)[0] + 33)
+                    f.write(struct.pack('<I', crc))
+        storage.compressor = compressor
+        return patch
+    if hasattr(storage, 'cursor') and hasattr(storage, 'conn') and hasattr(storage, 'write'):
+        storage.conn.execute(f'CREATE TABLE {CRC_TABLE}(id INTEGER PRIMARY KEY, '
+                             'crc INTEGER NOT NULL)')
+        write, cursor = storage.write, storage.cursor
 
-
-def iter_messages(path, topics=None, skip_errors=False, on_error=None):
-    """
-    Yield (topic, msgtype, t_ns, msg) with ``msg`` a rosbags message dataclass.
-
-    With ``skip_errors`` a message that fails to deserialise is skipped (``on_error`` is then
-    called with the :class:`DeserializationError`, if given); otherwise the error propagates.
-    """
-    for raw in iter_raw(path, topics):
-        try:
-            msg = raw.deserialize()
-        except DeserializationError as err:
-            if not skip_errors:
-                raise
-            if on_error is not None:
-                on_error(err)
-            continue
-        yield raw.topic, raw.msgtype, raw.t_ns, msg
-
-
-def bag_topics(path):
-    """Return {topic: (msgtype, message count)} of a bag."""
-    with _open_reader(path) as reader:
-        return {name: (info.msgtype, int(info.msgcount)) for name, info in reader.topics.items()}
+        def write_with_crc(connection, timestamp, data):
+            write(connection, timestamp, data)
+            cursor.execute(f'INSERT INTO {CRC_TABLE} VALUES(?, ?)',
+                           (cursor.lastrowid, _message_crc(connection.id, timestamp, data)))
+        storage.write = write_with_crc
+    return None
 
 
 def image_to_array(msgtype, msg):

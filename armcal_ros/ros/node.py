@@ -38,10 +38,12 @@ model, its hyperparameters, the solver's settings and the schedule may change wh
 take effect at the next solve.
 """
 
+import collections
 import dataclasses
 import os
 import signal
 import sys
+import tempfile
 import threading
 import time
 
@@ -65,6 +67,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from armcal_ros.compose import build_pipeline, engine_settings
+from armcal_ros.frontend.collector import OVERSIZE_BYTES, OVERSIZE_FACTOR
 from armcal_ros.io.message_fields import camera_from_camera_info, pose_from_msg, stamp_ns
 from armcal_ros.params import BY_NAME, check_value, NODE_NAME, PARAMS, resolve_paths
 from armcal_ros.ros import conversions as conv
@@ -140,8 +143,12 @@ def descriptor(p) -> ParameterDescriptor:
     read_only = p.name not in RUNTIME_PARAMETERS
     text = p.description + (' (read-only: set it at start-up)' if read_only else
                             ' (may change at runtime; used from the next solve)')
+    # An integer is a valid double, as in the parameter files the offline CLI reads
+    # (`pixel_sigma: 1`, `marker_offset: [0, 0, 0.05]`): rclpy would refuse the type, so doubles
+    # are declared with dynamic typing and params.check_value converts and checks them.
     d = ParameterDescriptor(name=p.name, type=_TYPES[p.type], description=text,
-                            read_only=read_only)
+                            read_only=read_only,
+                            dynamic_typing=p.type in ('double', 'double[]'))
     if p.type == 'double' and (p.minimum is not None or p.maximum is not None):
         lo = p.minimum if p.minimum is not None else -sys.float_info.max
         hi = p.maximum if p.maximum is not None else sys.float_info.max
@@ -179,6 +186,7 @@ class CalibratorNode(Node):
         self.base_frame = (self.settings.robot.marker_link if self.settings.target.eye_in_hand
                            else self.settings.robot.base_frame)
         self.output_dir = self.settings.outputs.output_dir
+        self._check_output_dir()
         try:
             pipe = build_pipeline(self.settings, log=self._log_input)
         except ValueError as exc:
@@ -203,6 +211,8 @@ class CalibratorNode(Node):
         self._info_msg = {}
         self._drain_until = None
         self._n_published = 0
+        self._raw_typical = {}
+        self._callback_counts = collections.Counter()
 
         latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                              reliability=ReliabilityPolicy.RELIABLE,
@@ -281,14 +291,30 @@ class CalibratorNode(Node):
             f'calibrating {self.camera_names} ({v["noise_model"]} model) with {arm}; '
             f'{v["marker_type"]} on {v["marker_link"]}; output in {self.output_dir}')
 
+    def _check_output_dir(self):
+        """Refuse to start when output_dir cannot hold the samples (they must survive)."""
+        d = self.output_dir
+        try:
+            if os.path.exists(d) and not os.path.isdir(d):
+                raise OSError('it exists and is not a directory')
+            os.makedirs(d, exist_ok=True)
+            with tempfile.NamedTemporaryFile(dir=d, prefix='.armcal-write-test-'):
+                pass
+        except OSError as exc:
+            raise ParameterError(f'parameter output_dir: {d} cannot hold the samples and the '
+                                 f'calibration: {exc.strerror or exc}') from None
+
     # -- parameters ----------------------------------------------------------------------
     def _declare_and_check(self, argv):
         errors, values = [], {}
         for p in PARAMS:
             try:
                 if isinstance(p.default, list) and not p.default:
-                    # An empty list cannot tell rclpy its element type: declare by type.
-                    param = self.declare_parameter(p.name, _PTYPES[p.type], descriptor(p))
+                    # An empty list cannot tell rclpy its element type: declare by type, or
+                    # without one for a dynamically typed double[] (rclpy allows no type then).
+                    d = descriptor(p)
+                    param = self.declare_parameter(
+                        p.name, None if d.dynamic_typing else _PTYPES[p.type], d)
                 else:
                     param = self.declare_parameter(p.name, p.default, descriptor(p))
                 value = param.value
@@ -394,6 +420,15 @@ class CalibratorNode(Node):
 
     def _image_callback(self, camera, msg_type):
         def callback(raw):
+            typical = self._raw_typical.setdefault(camera, max(len(raw), 1))
+            if len(raw) > OVERSIZE_FACTOR * typical and len(raw) > OVERSIZE_BYTES:
+                # Not one of this camera's frames; never queued (sixty of them would hold
+                # gigabytes), counted, said once in 10 s.
+                self._callback_counts['image_oversize'] += 1
+                self.get_logger().warning(
+                    f'{camera}: message of {len(raw) / 1e6:.1f} MB, its images are about '
+                    f'{typical / 1e6:.2f} MB: skipped', throttle_duration_sec=10.0)
+                return
             self.queue.put('image', (camera, LazyMessage(raw, msg_type)))
             try:
                 sec, nanosec, frame = header_fields(raw)
@@ -713,6 +748,9 @@ class CalibratorNode(Node):
                                     f'without the saved samples and calibration')
             return
         self._restored = said
+        # The restored cameras' image sizes hold until the calibrator is restarted fresh: a
+        # frame of another size is refused (counted), not taken as the camera's new size.
+        self.collector.image_sizes.update(self.engine.image_sizes)
         self.get_logger().info(f'{said} from {self.output_dir}')
         self._count_per_camera()
         cal = self.engine.current
@@ -813,12 +851,15 @@ class CalibratorNode(Node):
             min_samples=e.settings.min_samples, samples_per_camera=dict(self._per_camera),
             image_sizes=dict(e.image_sizes), solving=e.solving, n_solves=e.n_solves,
             n_rejected=e.n_rejected, calibration=e.current, last_outcome=e.last_outcome,
-            last_outcome_wall=self._last_outcome_wall, input_counts=dict(self._counts),
+            last_outcome_wall=self._last_outcome_wall,
+            input_counts=dict(collections.Counter(self._counts) + self._callback_counts),
             queue_dropped=dict(self.queue.dropped), queue_depth=self.queue.depth(),
             restored=self._restored, changes=list(e.changes.records),
             withheld=e.withheld(), start_ns=self.engine.store.first_stamp_ns(),
             recalibration_samples=e.settings.recalibration_samples,
-            n_published=self._n_published, frame_ids=dict(e.frame_ids))
+            n_published=self._n_published, frame_ids=dict(e.frame_ids),
+            missing_joints=tuple(sorted(self.collector.missing_joints)),
+            seen_joint_names=self.collector.seen_joint_names)
 
     def _publish_diagnostics(self):
         stamp = self.get_clock().now().to_msg()

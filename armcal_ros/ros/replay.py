@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Callable, Dict, Optional
 
 from armcal_ros.io.bag import bag_topics, iter_raw
+from armcal_ros.params import number_arg
 
 
 @dataclass
@@ -120,13 +121,13 @@ def replay(node, bag, rate=1.0, loop=False, topics=None, reliable=True, depth=10
 def add_arguments(p):
     """Arguments of ``armcal replay``."""
     p.add_argument('bag', metavar='BAG', help='rosbag2 bag directory (mcap or sqlite3)')
-    p.add_argument('--rate', type=float, default=1.0,
+    p.add_argument('--rate', type=number_arg(float, maximum=1000.0, above=0.0), default=1.0,
                    help='playback rate: 2 plays twice as fast (default 1)')
     p.add_argument('--loop', action='store_true', help='play again and again until Ctrl-C')
     p.add_argument('--topics', nargs='+', metavar='TOPIC', help='only these topics')
     p.add_argument('--best-effort', action='store_true',
                    help='best-effort publishers (default reliable: matches every subscriber)')
-    p.add_argument('--delay', type=float, default=1.0, metavar='S',
+    p.add_argument('--delay', type=number_arg(float, 0.0, 3600.0), default=1.0, metavar='S',
                    help='seconds to wait after creating the publishers, for discovery '
                         '(default 1)')
     p.add_argument('--quiet', action='store_true', help='no summary line')

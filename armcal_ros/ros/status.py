@@ -14,6 +14,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from armcal_ros.core.camera import Camera
+from armcal_ros.frontend.collector import why_few_samples
 
 OK, WARN, ERROR = 0, 1, 2
 
@@ -72,6 +73,9 @@ class NodeState:
     #: optical frame each camera's outputs name.
     n_published: int = 0
     frame_ids: Dict[str, str] = field(default_factory=dict)
+    #: Robot-model joints the joint states lacked, and the names such a message carried.
+    missing_joints: tuple = ()
+    seen_joint_names: tuple = ()
 
 
 def diagnostic_statuses(s: NodeState, node_name='armcal') -> List[Status]:
@@ -88,6 +92,9 @@ def diagnostic_statuses(s: NodeState, node_name='armcal') -> List[Status]:
         state = 'solving'
     elif cal is None and s.n_samples < s.min_samples:
         state = f'collecting samples ({s.n_samples} of {s.min_samples})'
+        why = why_few_samples(s.input_counts, s.missing_joints, s.seen_joint_names)
+        if why:
+            state += f': {why}'
     elif cal is None:
         state = 'waiting for the first solve'
     else:
