@@ -129,8 +129,10 @@ def _run_simulate(args):
             settings.sensor, lamp=tuple(args.lamp), ambient=args.ambient))
     result = simulate_cell(scenario, args.seed, args.duration, settings)
 
+    live = not args.quiet and sys.stderr.isatty()   # '\r' updates only on a terminal
+
     def progress(i, n):
-        if not args.quiet:
+        if live:
             print(f'\r  writing {i}/{n} messages', end='', file=sys.stderr, flush=True)
 
     counts = write_sim_bag(result, args.output, storage=args.storage,
@@ -143,8 +145,9 @@ def _run_simulate(args):
                 f'#   armcal calibrate {args.output} --params {params}\n')
         yaml.safe_dump({'armcal': {'ros__parameters': cell_parameters(settings, compressed)}},
                        f, sort_keys=False)
-    if not args.quiet:
+    if live:
         print('', file=sys.stderr)
+    if not args.quiet:
         size = sum(os.path.getsize(os.path.join(d, f))
                    for d, _, fs in os.walk(args.output) for f in fs)
         print(f'wrote {args.output}: cell {args.cell}, scenario {scenario}, seed {args.seed}, '

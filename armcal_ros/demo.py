@@ -67,10 +67,16 @@ def bag_demo(bag, params, output, noise_models, out=sys.stdout):
     truth, _ = load_truth(gt)
     settings = load_settings(params)
 
+    live = sys.stderr.isatty()      # '\r' updates only on a terminal, never into a log
+
     def progress(i, n):
-        print(f'\r  reading {bag}: {i}/{n} messages', end='', file=sys.stderr, flush=True)
+        if live:
+            print(f'\r  reading {bag}: {i}/{n} messages', end='', file=sys.stderr, flush=True)
+    if not live:
+        print(f'  reading {bag} ...', file=sys.stderr, flush=True)
     front = collect_samples(bag, settings, progress)
-    print('', file=sys.stderr)
+    if live:
+        print('', file=sys.stderr)
     print(f'Front end: {front.messages} messages in {front.time_s:.1f} s -> '
           f'{len(front.store)} samples\n', file=out)
     summary = []
