@@ -194,3 +194,34 @@ def test_why_few_samples_names_the_missing_joints_and_other_causes():
                                              'frames_still': 20, 'frames_no_marker': 20})
     assert why_few_samples({'joint_states': 100, 'frames': 50, 'frames_still': 20,
                             'detections': 20}) == ''
+
+
+def test_a_camera_silent_for_minutes_comes_back_into_the_samples():
+    """Camera c2 sends nothing for five minutes while c1 and the arm go on; then it is back."""
+    def sphere_results():
+        while True:
+            yield [Detection(uv=np.array([320.0, 240.0]), id=0, quality=1.0, radius_px=6.0)]
+    dets = {c: RecordingDetector(sphere_results()) for c in ('c1', 'c2')}
+    col = SampleCollector(None, [0, 0, 0], ['c1', 'c2'], dets)
+    img = _image_msg(np.full((24, 32), 128, np.uint8))
+    dwells = [(0, 1000), (150_000, 151_000), (310_000, 311_000)]      # ms
+    silent = (2_000, 300_000)                                         # c2 says nothing
+
+    def where(t):
+        for i, (a, b) in enumerate(dwells):
+            if a <= t <= b:
+                return np.array([0.1 * i, 0.0, 0.0])
+        a = t / 100.0                                  # a circle at 0.5 m/s in between
+        return np.array([0.5 + 0.05 * np.cos(a), 0.05 * np.sin(a), 0.0])
+    samples = []
+    for t in range(0, 312_000, 10):
+        samples += col.add_pose(t * MS, where(t), [0, 0, 0, 1])
+        if t % 50 == 0:
+            samples += col.add_image('c1', (t + 3) * MS, img)
+            if not silent[0] <= t <= silent[1]:
+                samples += col.add_image('c2', (t + 4) * MS, img)
+    samples += col.flush()
+    assert len(samples) == 3
+    assert [sorted(s.observations) for s in samples] == [['c1', 'c2'], ['c1'], ['c1', 'c2']]
+    assert not [k for k in col.counts if k.startswith(('frames_stale', 'frames_gap',
+                                                       'time_jump'))], col.counts
