@@ -250,7 +250,10 @@ def test_a_camera_info_with_the_identical_header_beside_every_image(live):
         # Each image the node receives gets its CameraInfo; best-effort delivery to the node on
         # a loaded two-core machine may lose a few images (counted in its diagnostics).
         assert paired >= 0.9 * len(after), (cam, paired, len(after))
-        assert len(after) >= 0.3 * len(images), 'calibrated too late in the replay to judge'
+        # The first calibration comes part-way through (later on a loaded machine): enough
+        # images after it to judge, at least two seconds of one camera at 2x.
+        assert len(after) >= 50, ('calibrated too late in the replay to judge', len(after),
+                                  len(images))
         # Every CameraInfo carries the header of an image: the latest image's one when it
         # is published at a solve or repeated after the images stopped.
         stray = infos - set(images)
