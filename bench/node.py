@@ -43,6 +43,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _report import machine, table, write_json, write_section  # noqa: E402
+from _ros import follow_calibration_diagnostics  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
@@ -112,13 +113,11 @@ class CpuSampler(threading.Thread):
 def run_rate(bag, params, rate, gt, out_dir, env, cameras, extra=()):
     """Start a node (``extra``: -p overrides), replay at ``rate``, return the measurements."""
     import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PointStamped
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile
     from sensor_msgs.msg import CameraInfo
 
-    from armcal_ros.ros.conversions import diagnostic_values
     from armcal_ros.ros.raw_message import header_fields
     from armcal_ros.ros.replay import replay
 
@@ -130,17 +129,11 @@ def run_rate(bag, params, rate, gt, out_dir, env, cameras, extra=()):
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     node = rclpy.create_node('armcal_bench', context=ctx)
-    samples, diag = [], {}
+    samples = []
     node.create_subscription(PointStamped, '/armcal/samples',
                              lambda m: samples.append((time.time(), stamp_ns(m.header.stamp))),
                              100)
-
-    def on_diag(msg):
-        v = diagnostic_values(msg, 'armcal: calibration')
-        if v is not None:
-            diag.clear()
-            diag.update(v)
-    node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
+    diag = follow_calibration_diagnostics(node)
     infos = {c: [] for c in cameras}         # (wall time received, header stamp ns)
 
     def on_info(cam):

@@ -34,6 +34,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _report import machine, table, write_json, write_section  # noqa: E402
+from _ros import follow_calibration_diagnostics  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
@@ -126,11 +127,9 @@ def main():
     ap.add_argument('--no-write', action='store_true')
     args = ap.parse_args()
     import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
 
     from armcal_ros.io.bag import iter_messages
-    from armcal_ros.ros.conversions import diagnostic_values
 
     settings = load_settings(args.params)
     tmp = tempfile.mkdtemp(prefix='armcal_soak_')
@@ -145,14 +144,7 @@ def main():
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     node = rclpy.create_node('armcal_soak', context=ctx)
-    diag = {}
-
-    def on_diag(msg):
-        v = diagnostic_values(msg, 'armcal: calibration')
-        if v is not None:
-            diag.clear()
-            diag.update(v)
-    node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
+    diag = follow_calibration_diagnostics(node)
     abuse = Abuse(node, settings, args.abuse_period)
     for topic, _, _, msg in iter_messages(args.bag, [settings.inputs.joint_states_topic]):
         abuse.joint_names(msg.name)

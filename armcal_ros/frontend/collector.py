@@ -43,6 +43,11 @@ OVERSIZE_FACTOR = 8
 OVERSIZE_BYTES = 4_000_000
 
 
+def is_oversize(nbytes, typical) -> bool:
+    """Whether ``nbytes`` cannot be a frame of a camera whose frames are ``typical`` bytes."""
+    return typical is not None and nbytes > OVERSIZE_FACTOR * typical and nbytes > OVERSIZE_BYTES
+
+
 class RateLimitedLog:
     """Call ``log(message)`` at most once per ``period_s`` for each key (first time at once)."""
 
@@ -263,7 +268,7 @@ class SampleCollector:
     def _detect(self, camera, msg):
         nbytes = len(getattr(msg, 'data', b''))
         typical = self._typical_bytes.get(camera)
-        if typical is not None and nbytes > OVERSIZE_FACTOR * typical and nbytes > OVERSIZE_BYTES:
+        if is_oversize(nbytes, typical):
             self._count('image_oversize', f'{camera}: image of {nbytes / 1e6:.1f} MB, its '
                         f'images are about {typical / 1e6:.2f} MB')
             return ()

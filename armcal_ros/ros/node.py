@@ -67,12 +67,12 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from armcal_ros.compose import build_pipeline, engine_settings
-from armcal_ros.frontend.collector import OVERSIZE_BYTES, OVERSIZE_FACTOR
+from armcal_ros.frontend.collector import is_oversize
 from armcal_ros.io.message_fields import camera_from_camera_info, pose_from_msg, stamp_ns
+from armcal_ros.io.results_files import write_driver_camera_info
 from armcal_ros.params import BY_NAME, check_value, NODE_NAME, PARAMS, resolve_paths
 from armcal_ros.ros import conversions as conv
 from armcal_ros.ros.event_queue import EventQueue
-from armcal_ros.io.results_files import write_driver_camera_info
 from armcal_ros.ros.raw_message import header_fields, LazyMessage
 from armcal_ros.ros.status import diagnostic_statuses, NodeState
 from armcal_ros.settings import (settings_from_values, with_given_intrinsics,
@@ -421,7 +421,7 @@ class CalibratorNode(Node):
     def _image_callback(self, camera, msg_type):
         def callback(raw):
             typical = self._raw_typical.setdefault(camera, max(len(raw), 1))
-            if len(raw) > OVERSIZE_FACTOR * typical and len(raw) > OVERSIZE_BYTES:
+            if is_oversize(len(raw), typical):
                 # Not one of this camera's frames; never queued (sixty of them would hold
                 # gigabytes), counted, said once in 10 s.
                 self._callback_counts['image_oversize'] += 1
