@@ -42,6 +42,10 @@ sys.path.insert(0, ROOT)
 from armcal_ros.settings import load_settings  # noqa: E402
 
 
+#: The flood's replay rate: ten times real time, the issue's "10x the rate".
+FLOOD_RATE = 10.0
+
+
 def rss_mb(pid):
     """Return the resident memory of process ``pid`` in MB (VmRSS)."""
     with open(f'/proc/{pid}/status') as f:
@@ -124,6 +128,8 @@ def main():
     ap.add_argument('--cell-hours', type=float, default=8.0)
     ap.add_argument('--rate', type=float, default=4.0)
     ap.add_argument('--abuse-period', type=float, default=5.0, help='seconds of wall time')
+    ap.add_argument('--flood-s', type=float, default=120.0,
+                    help='seconds of wall time at 10x, three quarters through (0: none)')
     ap.add_argument('--no-write', action='store_true')
     args = ap.parse_args()
     import rclpy
@@ -160,17 +166,57 @@ def main():
         time.sleep(0.2)
     if not diag:
         raise RuntimeError(f'the node did not come up (see {log})')
-    replay = subprocess.Popen([sys.executable, '-m', 'armcal_ros.cli', 'replay', args.bag,
-                               '--rate', str(args.rate), '--loop', '--quiet'], env=env,
-                              cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def start_replay(rate):
+        return subprocess.Popen([sys.executable, '-m', 'armcal_ros.cli', 'replay', args.bag,
+                                 '--rate', str(rate), '--loop', '--quiet'], env=env,
+                                cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def stop_replay(p):
+        p.send_signal(signal.SIGINT)
+        try:
+            p.wait(30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+    replay = start_replay(args.rate)
     abuse.start()
     t0 = time.monotonic()
     last_cpu, last_t = cpu_s(proc.pid), t0
+    flood = {}
     try:
         while True:
             now = time.monotonic()
             if now - t0 >= wall:
                 break
+            if restart and not flood and now - t0 >= 0.75 * wall and args.flood_s > 0:
+                # A flood: the bag at 10x for a while; the node must count what it cannot
+                # take, skip it, and keep calibrating.
+                stop_replay(replay)
+                before = dict(diag)
+                c0 = cpu_s(proc.pid)
+                replay = start_replay(FLOOD_RATE)
+                time.sleep(args.flood_s)
+                stop_replay(replay)
+                during = dict(diag)
+                replay = start_replay(args.rate)
+                time.sleep(min(120.0, args.flood_s))
+                after = dict(diag)
+
+                def delta(k, a, b):
+                    return int(float(b.get(k, 0))) - int(float(a.get(k, 0)))
+                keys = sorted(k for k in during if k.startswith(('input_', 'queue_dropped_',
+                                                                 'sample_')))
+                flood = dict(cell_h=(now - t0) * args.rate / 3600.0, wall_s=args.flood_s,
+                             rate=FLOOD_RATE, alive=proc.poll() is None,
+                             cpu_pct=100.0 * (cpu_s(proc.pid) - c0) / args.flood_s,
+                             counts={k: delta(k, before, during) for k in keys
+                                     if delta(k, before, during)},
+                             solves_during=delta('solves', before, during),
+                             solves_after=delta('solves', during, after),
+                             samples=int(float(after.get('samples', 0))))
+                print(f'flood: {flood}', flush=True)
+                last_cpu, last_t = cpu_s(proc.pid), time.monotonic()
             if not restart and now - t0 >= wall / 2:
                 # Half-way: stop and start again; every stored sample must come back.
                 before = int(diag.get('samples', 0))
@@ -199,11 +245,7 @@ def main():
                   f'{rows[-1]["solves"]}', flush=True)
     finally:
         abuse.stop.set()
-        replay.send_signal(signal.SIGINT)
-        try:
-            replay.wait(30)
-        except subprocess.TimeoutExpired:
-            replay.kill()
+        stop_replay(replay)
         final = dict(diag)
         proc.send_signal(signal.SIGINT)
         try:
@@ -224,10 +266,25 @@ def main():
         seen.add(key)
         table_rows.append([f'{r["cell_h"]:.1f}', f'{r["rss_mb"]:.0f}', f'{r["cpu_pct"]:.0f}',
                            r['samples'], r['solves']])
-    # Memory once the store stopped growing: from the first row with 95 % of the final samples.
-    full = [r for r in rows if r['samples'] >= 0.95 * rows[-1]['samples']]
-    rss = np.array([r['rss_mb'] for r in full])
-    drift = (rss.max() - rss.min()) / rss.min() * 100.0 if len(rss) else float('nan')
+    # Memory once warm: per node process (before and after the restart), from one cell-hour
+    # after its start with the sample store full (95 % of its final size), to its end.
+    t_restart = restart.get('cell_h', float('inf'))
+    windows = []
+    for lo, hi in ((0.0, t_restart), (t_restart, float('inf'))):
+        seg = [r for r in rows if lo <= r['cell_h'] < hi]
+        if not seg:
+            continue
+        warm = [r for r in seg if r['cell_h'] >= lo + 1.0 and
+                r['samples'] >= 0.95 * seg[-1]['samples']]
+        if len(warm) >= 2:
+            rss = np.array([r['rss_mb'] for r in warm])
+            windows.append(dict(first_h=warm[0]['cell_h'], last_h=warm[-1]['cell_h'],
+                                lo=float(rss.min()), hi=float(rss.max()),
+                                start=float(rss[0]), end=float(rss[-1]),
+                                spread=float((rss.max() - rss.min()) / rss.min() * 100.0)))
+    flat = '; '.join(f'{w["first_h"]:.1f}-{w["last_h"]:.1f} cell-hours: {w["lo"]:.0f}-'
+                     f'{w["hi"]:.0f} MB ({w["start"]:.0f} at its start, {w["end"]:.0f} at its '
+                     f'end), a spread of {w["spread"]:.1f} %' for w in windows) or 'n/a'
     counters = {k: v for k, v in final.items() if k.startswith(('input_', 'queue_dropped_'))
                 and str(v) not in ('0', '0.0')}
     text = '\n'.join([
@@ -243,17 +300,34 @@ def main():
         '',
         table(['cell hours', 'RSS MB', 'CPU %', 'samples', 'solves'], table_rows),
         '',
-        f'Memory once the sample store had stopped growing (last {len(full)} minutes): '
-        f'{rss.min():.0f}-{rss.max():.0f} MB, a spread of {drift:.1f} % (target: within '
-        f'10 %). Restart at {restart.get("cell_h", float("nan")):.1f} cell-hours: '
+        f'Memory of each node process from one cell-hour after its start (the sample store '
+        f'full) to its end: {flat} (target: within 10 %). The node returns the heap\'s free '
+        f'pages to the system after each solve (malloc_trim; armcal_ros/ros/memory.py). '
+        f'Restart at {restart.get("cell_h", float("nan")):.1f} cell-hours: '
         f'{restart.get("before")} samples stored before, "{restart.get("restored")}" after. '
         f'The node exited cleanly at the end: {alive}. Bad inputs sent: {abuse.sent}. Final '
         f'input counters: {counters}.',
+        '',
+        (f'Flood at {flood["cell_h"]:.1f} cell-hours: the bag at {flood["rate"]:g}x for '
+         f'{flood["wall_s"]:.0f} s of wall time ({flood["cpu_pct"]:.0f} % of a core). What the '
+         f'node counted meanwhile: {flood["counts"]}. Solves during it: '
+         f'{flood["solves_during"]}, in the {min(120.0, flood["wall_s"]):.0f} s after it: '
+         f'{flood["solves_after"]}; samples after it: {flood["samples"]}; the node alive '
+         f'throughout: {flood["alive"]}.') if flood else 'No flood was run.',
+        '',
+        'Before the heap was trimmed after each solve, the same soak (4 cell-hours, '
+        '2026-12-02) grew 234 -> 322 MB, 30 % over the hours with the store full, while '
+        'tracemalloc showed the Python objects flat (14.2-14.6 MB traced over four passes of '
+        'the bag in one process; in the node, 107-160 MB of traced objects, falling, while its '
+        'RSS rose 464 -> 591 MB): the growth was freed C-heap pages that glibc kept resident. '
+        'One malloc_trim(0) a minute on the running node took it from 220-243 MB back to '
+        '184-200 MB each time, and the after-trim figure levelled off within a cell-hour.',
     ])
     print(text)
     if not args.no_write:
         write_section('soak', text)
         write_json('soak', dict(rows=rows, restart=restart, final=final, sent=abuse.sent,
+                                windows=windows, flood=flood,
                                 rate=args.rate, cell_hours=args.cell_hours,
                                 machine=machine()))
 

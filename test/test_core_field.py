@@ -69,16 +69,16 @@ def test_reduced_system_equals_brute_force_elimination():
     pb = _Problem(cams, prob.measured, prob.obs, prior, s, np.ones(len(prob.obs), bool))
     g = np.random.default_rng(1).normal(size=prior.n_global) * 0.3
     X = prob.measured + 1e-4
-    U, g_c, W, Vb, g_x, g_g = pb.normal_equations(cams, X, g)
+    U, g_c, Wt, Vb, g_x, g_g = pb.normal_equations(cams, X, g)
     lam = 1e-2
-    S, rhs, _ = pb._global_system(U, g_c, W, Vb, g_x, g_g, lam)
+    S, rhs, _ = pb._global_system(U, g_c, Wt, Vb, g_x, g_g, lam)
     n, C, G = len(X), U.shape[0], prior.n_global
     A = _dense(prior.design, n)
     p = prior.precision
     H = np.zeros((C + G + 3 * n,) * 2)
     H[:C, :C] = U
-    H[:C, C + G:] = W.reshape(C, 3 * n)
-    H[C + G:, :C] = W.reshape(C, 3 * n).T
+    H[:C, C + G:] = Wt.reshape(3 * n, C).T       # Wt (n, 3, C) holds W_i^T per point
+    H[C + G:, :C] = Wt.reshape(3 * n, C)
     H[C:C + G, C:C + G] = np.einsum('nka,n,nkb->ab', A, p, A) + np.eye(G)
     B = -(p[:, None, None] * A).reshape(3 * n, G)
     H[C + G:, C:C + G] = B
@@ -88,7 +88,7 @@ def test_reduced_system_equals_brute_force_elimination():
             Vb[i] + p[i] * np.eye(3)
     H[np.diag_indices_from(H)] *= 1.0 + lam
     d = np.linalg.solve(H, -np.concatenate([g_c, g_g, g_x.ravel()]))
-    dc, dx, dg = pb.solve_step(U, g_c, W, Vb, g_x, lam, g_g)
+    dc, dx, dg = pb.solve_step(U, g_c, Wt, Vb, g_x, lam, g_g)
     assert np.allclose(np.concatenate([dc, dg, dx.ravel()]), d, rtol=1e-7,
                        atol=1e-9 * np.abs(d).max())
     # cost gradient w.r.t. g against central differences

@@ -27,14 +27,15 @@ def prob():
 def _dense_leverages(problem, res):
     """h_k from the whole normal matrix N = [[U, W], [W^T, V]], inverted densely."""
     cams = [e.camera for e in res.cameras.values()]
-    U, _, W, Vb, _, _ = problem.normal_equations(cams, res.points)
+    U, _, Wt, Vb, _, _ = problem.normal_equations(cams, res.points)
     C, n = problem.layout.size, problem.n
     V = np.zeros((3 * n, 3 * n))
     for i in range(n):
         V[3 * i:3 * i + 3, 3 * i:3 * i + 3] = Vb[i]
     V += (np.kron(np.eye(n), np.eye(3)) / problem.prior.settings.point_sigma ** 2
           if problem.prior.kind == 'block' else problem.P_dense)
-    N = np.block([[U, W.reshape(C, 3 * n)], [W.reshape(C, 3 * n).T, V]])
+    Wm = Wt.reshape(3 * n, C).T                    # W (C, 3n) from its per-point transposes
+    N = np.block([[U, Wm], [Wm.T, V]])
     Sigma = np.linalg.inv(N)
     pc = problem.layout.per_camera
     h = np.zeros(len(problem.obs))
@@ -92,7 +93,7 @@ def test_kinematic_leverages_match_the_whole_normal_matrix(prob):
     g = res.global_parameters
     cov = np.linalg.inv(problem.reduced_matrix(cams, res.points, g))
     h = problem.leverages(cams, res.points, g, cov)
-    U, _, W, Vb, _, _ = problem.normal_equations(cams, res.points, g)
+    U, _, Wt, Vb, _, _ = problem.normal_equations(cams, res.points, g)
     C, n, G = problem.layout.size, problem.n, len(g)
     p = prior.precision
     A = np.stack([prior.design.apply(e) for e in np.eye(G)], axis=2)       # (n, 3, G)
@@ -102,7 +103,7 @@ def test_kinematic_leverages_match_the_whole_normal_matrix(prob):
         V[3 * i:3 * i + 3, 3 * i:3 * i + 3] = Vb[i] + p[i] * np.eye(3)
         Hgx[:, 3 * i:3 * i + 3] = -p[i] * A[i].T
     Hgg = np.einsum('n,nkg,nkh->gh', p, A, A) + np.eye(G)
-    Wm = W.reshape(C, 3 * n)
+    Wm = Wt.reshape(3 * n, C).T
     N = np.block([[U, np.zeros((C, G)), Wm], [np.zeros((G, C)), Hgg, Hgx], [Wm.T, Hgx.T, V]])
     Sigma = np.linalg.inv(N)
     pc = problem.layout.per_camera

@@ -21,8 +21,6 @@ from typing import Tuple
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from armcal_ros.core.geometry import skew
-
 
 DISTORTION_NAMES = ('k1', 'k2', 'p1', 'p2', 'k3')
 INTRINSIC_NAMES = ('fx', 'fy', 'cx', 'cy')
@@ -239,18 +237,22 @@ def project_with_jacobians(intr, dist, R, t, X) -> ProjectionJacobians:
     a[:, 1, 1] = radial + yn * dr_dy + 6.0 * p1 * yn + 2.0 * p2 * xn
     a[:, 0, :] *= fx
     a[:, 1, :] *= fy
-    # d(x', y') / d Xc
-    b = np.zeros((n, 2, 3))
-    b[:, 0, 0] = iz
-    b[:, 1, 1] = iz
-    b[:, 0, 2] = -xn * iz
-    b[:, 1, 2] = -yn * iz
-    # Batched products by matmul: einsum's generic loop took 4x as long for these small blocks.
-    d_xc = a @ b                                    # (n, 2, 3) = d uv / d Xc
+    # d uv / d Xc = a @ b with b = d(x', y') / d Xc = [[1, 0, -x'], [0, 1, -y']] / z, written
+    # out: b is sparse, and batched matmuls of 2x2 and 2x3 blocks cost more than the products.
+    d_xc = np.empty((n, 2, 3))
+    d_xc[:, :, 0] = a[:, :, 0] * iz[:, None]
+    d_xc[:, :, 1] = a[:, :, 1] * iz[:, None]
+    d_xc[:, :, 2] = -(d_xc[:, :, 0] * xn[:, None] + d_xc[:, :, 1] * yn[:, None])
 
-    d_point = d_xc @ R
+    d_point = (d_xc.reshape(2 * n, 3) @ R).reshape(n, 2, 3)     # one GEMM for every row
+    # Left rotation increment: d Xc / d w = -[R X]_x, so each row d of d uv / d Xc maps to
+    # -d^T [R X]_x = (R X) x d, a cross product per row.
     d_pose = np.empty((n, 2, 6))
-    d_pose[:, :, :3] = -(d_xc @ skew(RX))
+    v0, v1, v2 = RX[:, 0, None], RX[:, 1, None], RX[:, 2, None]
+    e0, e1, e2 = d_xc[:, :, 0], d_xc[:, :, 1], d_xc[:, :, 2]
+    d_pose[:, :, 0] = v1 * e2 - v2 * e1
+    d_pose[:, :, 1] = v2 * e0 - v0 * e2
+    d_pose[:, :, 2] = v0 * e1 - v1 * e0
     d_pose[:, :, 3:] = d_xc
     return ProjectionJacobians(uv, d_intr, d_dist, d_pose, d_point, z)
 

@@ -73,6 +73,7 @@ from armcal_ros.io.results_files import write_driver_camera_info
 from armcal_ros.params import BY_NAME, check_value, NODE_NAME, PARAMS, resolve_paths
 from armcal_ros.ros import conversions as conv
 from armcal_ros.ros.event_queue import EventQueue
+from armcal_ros.ros.memory import release_free_memory
 from armcal_ros.ros.raw_message import header_fields, LazyMessage
 from armcal_ros.ros.status import diagnostic_statuses, NodeState
 from armcal_ros.settings import (settings_from_values, with_given_intrinsics,
@@ -576,6 +577,9 @@ class CalibratorNode(Node):
             if not self._closing:
                 self.get_logger().error(f'cannot publish the calibration: '
                                         f'{type(exc).__name__}: {exc}')
+        # A solve frees tens of MB of blocks; without this the heap's free pages stay resident
+        # and the process grows for hours (see armcal_ros/ros/memory.py).
+        release_free_memory()
 
     def _on_change(self, record):
         """Engine callback (the worker thread): say it, withdraw a changed camera's calibration."""
