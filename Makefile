@@ -32,6 +32,7 @@ test: $(STAMP)
 # Every benchmark script; each prints its table and rewrites its section of docs/BENCHMARKS.md.
 bench: $(STAMP)
 	$(PY) bench/solver.py
+	$(PY) bench/auto_search.py
 	$(PY) bench/accuracy.py
 	$(PY) bench/scaling.py
 	$(PY) bench/bias.py

@@ -14,10 +14,16 @@ Jacobian, sparse (trf + LSMR) and dense (MINPACK lm) (bench/_scipy_reference.py)
 finite differences (`fixed` only), and Ceres through pycolmap's bundle adjuster (bench/_ceres.py,
 skipped without pycolmap).  Each row's final cost and focal lengths are compared with armcal's.
 
+Profile: ``--profile --label NAME`` profiles adjust() at the largest speed size and keeps the
+profile per label, so a checkout of an earlier commit (PYTHONPATH=that tree) and this one are
+shown side by side.
+
 Usage: python bench/solver.py [--sizes 100 300 1000] [--seeds 5] [--speed-sizes 100 1000 3000]
-       python bench/solver.py --speed-only [--no-write]
-Prints the tables and writes docs/BENCHMARKS.md (section "solver"; "solver-speed" with
---speed-only) and docs/bench/solver.json (solver_speed.json).
+       python bench/solver.py --speed-only | --accuracy-only | --profile [--label before]
+Prints the tables and writes docs/BENCHMARKS.md (sections "solver", "solver-speed",
+"solver-profile") and docs/bench/solver.json, solver_speed.json, solver_profile_<label>.json.
+Install pycolmap (pip install pycolmap; it brings pyceres) for the Ceres rows: a benchmark-only
+dependency, never needed by the package or its tests.
 """
 
 import argparse
@@ -415,6 +421,8 @@ def main(argv=None):
     ap.add_argument('--speed-only', action='store_true',
                     help='run only the speed comparison (section "solver-speed")')
     ap.add_argument('--no-write', action='store_true', help='print only; write nothing')
+    ap.add_argument('--accuracy-only', action='store_true',
+                    help='run only the accuracy part (section "solver")')
     ap.add_argument('--profile', action='store_true',
                     help='profile adjust() at the largest speed size (section "solver-profile")')
     ap.add_argument('--label', default='after',
@@ -439,7 +447,7 @@ def main(argv=None):
         if not args.no_write:
             write_section('solver-profile', text)
         return 0
-    if args.speed_only:
+    if args.speed_only or not args.accuracy_only:
         speed, text = run_speed(args.speed_sizes, args.speed_seed, args.repeats,
                                 args.dense_max_entries)
         print(text)
@@ -447,7 +455,8 @@ def main(argv=None):
             write_section('solver-speed', '## Solver speed (bench/solver.py --speed-only)\n\n'
                           + text)
             write_json('solver_speed', {'speed': speed, 'machine': machine()})
-        return 0
+        if args.speed_only:
+            return 0
     results = {}
     for n in args.sizes:
         for seed in range(args.seeds):
@@ -469,8 +478,6 @@ def main(argv=None):
                          f'{mean["time_s"]:.2f}', f'{mean["solved"]}/{len(cases)}'])
     ratio300 = (summary['300/correlated']['absolute_mm'] / summary['300/fixed']['absolute_mm']
                 if '300/fixed' in summary else float('nan'))
-    speed, speed_md = run_speed(args.speed_sizes, args.speed_seed, args.repeats,
-                                args.dense_max_entries)
     md = ['## Estimator (bench/solver.py)', '',
           f'Three cameras (640x480, f ~ 800 px, k1 ~ -0.15) at 1.5-2 m; robot bias drawn from the '
           f'correlated prior (1 mm per axis, L = 0.3 m); {PIXEL_SIGMA} px image noise; mean of '
@@ -481,13 +488,13 @@ def main(argv=None):
           table(['N', 'model', 'absolute mm', 'shape mm', 'centre mm', 'focal %', 'fit rms px',
                  'test reproj px', 'time s', 'solved'], rows), '',
           f'Correlated / fixed absolute error at N = 300: **{ratio300:.2f}** (target <= 0.75).',
-          '', speed_md]
+          '', 'Speed against scipy and Ceres on the same problems: section "solver-speed" '
+          '(`--speed-only`).']
     text = '\n'.join(md)
     print(text)
     if not args.no_write:
         write_section('solver', text)
-        write_json('solver', {'summary': summary, 'cases': results, 'speed': speed,
-                              'machine': machine()})
+        write_json('solver', {'summary': summary, 'cases': results, 'machine': machine()})
     return 0
 
 
