@@ -10,7 +10,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from armcal_ros.core.change import (cap_of, ChangeMonitor, ChangeSettings, innovation,
-                                    PredictionModel, reference_scales, threshold)
+                                    PredictionModel, reference_scales, statistics,
+                                    statistics_batch, threshold)
 from armcal_ros.sim.synthetic import make_problem
 
 PIXEL_SIGMA = 0.3
@@ -59,6 +60,33 @@ def test_innovations_of_an_unchanged_cell_are_chi_square_with_two_degrees():
     assert np.mean(d2) == pytest.approx(2.0, rel=0.1)
     scales = reference_scales(model, measured, uvs)
     assert all(0.8 < k < 1.25 for k in scales.values())
+
+
+def test_batched_statistics_equal_the_per_sample_ones():
+    """Every camera's d^2 over many samples at once equals the per-sample computation."""
+    cams, _, measured, uvs = _stream(150, 4)
+    rng = np.random.default_rng(4)
+    # Some samples seen by one camera only, one camera unknown to the model, and a
+    # parameter covariance on one camera (the prediction's extra term).
+    for o in uvs[:20]:
+        for name in list(o)[1:]:
+            del o[name]
+    uvs[30]['cam_not_modelled'] = np.array([1.0, 2.0])
+    A = rng.normal(size=(14, 14)) * 1e-3
+    names = ['fx', 'fy', 'cx', 'cy', 'k1', 'k2', 'p1', 'p2', 'wx', 'wy', 'wz', 'tx', 'ty', 'tz']
+    model = PredictionModel({c.name: c for c in cams}, {c.name: PIXEL_SIGMA for c in cams},
+                            ARM_SIGMA, {cams[0].name: (names, A @ A.T)})
+    batch = statistics_batch(model, measured, uvs)
+    compared = 0
+    for i, (X, obs) in enumerate(zip(measured, uvs)):
+        one = statistics(model, X, obs)
+        for name, d2 in batch.items():
+            if name in one:
+                assert d2[i] == pytest.approx(one[name], rel=1e-9)
+                compared += 1
+            else:
+                assert np.isnan(d2[i])
+    assert compared > 300
 
 
 def test_an_unchanged_cell_raises_no_alarm():

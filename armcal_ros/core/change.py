@@ -296,18 +296,115 @@ def statistics(model: PredictionModel, X0, uvs: Dict[str, np.ndarray]) -> Dict[s
     return out
 
 
+def _predict_batch(model: PredictionModel, name, X, scale=1.0):
+    """
+    :func:`predict` for many points X (N, 3) at once: (uv, d uv / dX, Sigma (N, 2, 2), depth).
+
+    The same formula, with one projection call and one einsum for all points.
+    """
+    cam = model.cameras[name]
+    pj = project_with_jacobians(cam.intrinsics(), cam.dist, cam.rotation, cam.translation, X)
+    Sigma = np.zeros((X.shape[0], 2, 2))
+    Sigma[:, 0, 0] = Sigma[:, 1, 1] = scale * model.sigma_px[name] ** 2
+    got = model.parameter_covariance.get(name)
+    if got is not None:
+        names, C = got
+        cols = []
+        for p in names:
+            if p in ('fx', 'fy', 'cx', 'cy'):
+                cols.append(pj.d_intr[:, :, ('fx', 'fy', 'cx', 'cy').index(p)])
+            elif p in _DIST:
+                cols.append(pj.d_dist[:, :, _DIST.index(p)])
+            else:
+                cols.append(pj.d_pose[:, :, ('wx', 'wy', 'wz', 'tx', 'ty', 'tz').index(p)])
+        Jc = np.stack(cols, axis=2)
+        Sigma = Sigma + np.einsum('nap,pq,nbq->nab', Jc, C, Jc)
+    return pj.uv, pj.d_point, Sigma, pj.depth
+
+
+def _inv2(S):
+    """Invert a stack of 2x2 matrices (N, 2, 2); non-invertible ones come back non-finite."""
+    det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
+    out = np.empty_like(S)
+    out[:, 0, 0], out[:, 1, 1] = S[:, 1, 1], S[:, 0, 0]
+    out[:, 0, 1], out[:, 1, 0] = -S[:, 0, 1], -S[:, 1, 0]
+    with np.errstate(divide='ignore', invalid='ignore'):
+        return out / det[:, None, None]
+
+
+def statistics_batch(model: PredictionModel, points, observations) -> Dict[str, np.ndarray]:
+    """
+    Return every modelled camera's d^2 over many samples: name -> (N,), NaN where not seen.
+
+    The same leave-one-camera-out innovation as :func:`innovation` (the same Gauss-Newton
+    fusion of the arm and the other cameras, ``FUSION_ITERATIONS`` steps, then the camera's
+    prediction), computed for all samples at once: a per-sample loop spent 0.5 s in Python
+    per solve on 300 samples, this one a few milliseconds.  Samples where a fusion is singular
+    or the point is behind the camera are NaN, as :func:`statistics` leaves them out.
+    """
+    X0 = np.asarray(points, float).reshape(-1, 3)
+    N = X0.shape[0]
+    names = [n for n in model.cameras if any(n in o for o in observations)]
+    seen = {n: np.array([n in o for o in observations]) for n in names}
+    uv = {n: np.array([np.asarray(o[n], float).reshape(2) if n in o else (np.nan, np.nan)
+                       for o in observations]).reshape(N, 2) for n in names}
+    w_arm = 1.0 / model.arm_sigma ** 2
+    out = {}
+    for left in names:
+        rows = np.flatnonzero(seen[left])
+        if rows.size == 0:
+            continue
+        others = [n for n in names if n != left]
+        X = X0[rows].copy()
+        ok = np.ones(rows.size, bool)
+        with np.errstate(all='ignore'):
+            for it in range(FUSION_ITERATIONS + 1):
+                H = np.zeros((rows.size, 3, 3))
+                H[:, [0, 1, 2], [0, 1, 2]] = w_arm
+                g = w_arm * (X0[rows] - X)
+                for n in others:
+                    m = seen[n][rows]
+                    if not np.any(m):
+                        continue
+                    u, J, Sigma, _ = _predict_batch(model, n, X[m])
+                    W = _inv2(Sigma)
+                    r = uv[n][rows[m]] - u
+                    JtW = np.einsum('nak,nab->nkb', J, W)
+                    H[m] += np.einsum('nkb,nbl->nkl', JtW, J)
+                    g[m] += np.einsum('nkb,nb->nk', JtW, r)
+                    ok[m] &= np.all(np.isfinite(W), axis=(1, 2))
+                if it < FUSION_ITERATIONS:
+                    good = ok & np.all(np.isfinite(H), axis=(1, 2)) & \
+                        (np.abs(np.linalg.det(np.where(ok[:, None, None], H, np.eye(3))))
+                         > 0)
+                    ok &= good
+                    X[ok] = X[ok] + np.linalg.solve(H[ok], g[ok][:, :, None])[:, :, 0]
+            cov = np.full((rows.size, 3, 3), np.nan)
+            inv_ok = ok & (np.abs(np.linalg.det(np.where(ok[:, None, None], H, np.eye(3))))
+                           > 0)
+            cov[inv_ok] = np.linalg.inv(H[inv_ok])
+            u, J, Sigma, depth = _predict_batch(model, left, X)
+            r = uv[left][rows] - u
+            S = Sigma + np.einsum('nak,nkl,nbl->nab', J, cov, J)
+            d2 = np.einsum('na,nab,nb->n', r, _inv2(S), r)
+        d2[~inv_ok | ~(depth > 0) | ~np.isfinite(d2)] = np.nan
+        full = np.full(N, np.nan)
+        full[rows] = d2
+        out[left] = full
+    return out
+
+
 def reference_scales(model: PredictionModel, points, observations) -> Dict[str, float]:
     """
     Return k_c^2 per camera from the calibration's own samples (module docstring).
 
     ``points`` (N, 3) the arm's points, ``observations`` a list of N dicts name -> uv (2,).
     """
-    d2 = {}
-    for X0, uvs in zip(points, observations):
-        for name, v in statistics(model, X0, uvs).items():
-            d2.setdefault(name, []).append(v)
-    return {name: (float(np.median(v)) / MEDIAN_CHI2_2 if len(v) >= MIN_REFERENCE else 1.0)
-            for name, v in d2.items()}
+    out = {}
+    for name, d2 in statistics_batch(model, points, observations).items():
+        v = d2[np.isfinite(d2)]
+        out[name] = float(np.median(v)) / MEDIAN_CHI2_2 if v.size >= MIN_REFERENCE else 1.0
+    return out
 
 
 @dataclass
