@@ -185,6 +185,30 @@ class PredictionModel:
 _DIST = ('k1', 'k2', 'p1', 'p2', 'k3')
 
 
+def _predict_batch(model: PredictionModel, name, X, scale=1.0):
+    """
+    :func:`predict` for many points X (N, 3) at once: (uv, d uv / dX, Sigma (N, 2, 2), depth).
+    """
+    cam = model.cameras[name]
+    pj = project_with_jacobians(cam.intrinsics(), cam.dist, cam.rotation, cam.translation, X)
+    Sigma = np.zeros((X.shape[0], 2, 2))
+    Sigma[:, 0, 0] = Sigma[:, 1, 1] = scale * model.sigma_px[name] ** 2
+    got = model.parameter_covariance.get(name)
+    if got is not None:
+        names, C = got
+        cols = []
+        for p in names:
+            if p in ('fx', 'fy', 'cx', 'cy'):
+                cols.append(pj.d_intr[:, :, ('fx', 'fy', 'cx', 'cy').index(p)])
+            elif p in _DIST:
+                cols.append(pj.d_dist[:, :, _DIST.index(p)])
+            else:
+                cols.append(pj.d_pose[:, :, ('wx', 'wy', 'wz', 'tx', 'ty', 'tz').index(p)])
+        Jc = np.stack(cols, axis=2)
+        Sigma = Sigma + np.einsum('nap,pq,nbq->nab', Jc, C, Jc)
+    return pj.uv, pj.d_point, Sigma, pj.depth
+
+
 def predict(model: PredictionModel, name, X, scale=1.0):
     """
     Return camera ``name``'s prediction of point X (3,): (uv (2,), d uv / dX (2, 3), Sigma (2, 2)).
@@ -192,24 +216,8 @@ def predict(model: PredictionModel, name, X, scale=1.0):
     Sigma = scale s^2 I + J_c C J_c^T: the image noise (times ``scale``, the k^2 of the module
     docstring) and the calibration's own uncertainty through the camera's parameter Jacobian.
     """
-    cam = model.cameras[name]
-    pj = project_with_jacobians(cam.intrinsics(), cam.dist, cam.rotation, cam.translation,
-                                np.asarray(X, float).reshape(1, 3))
-    Sigma = scale * model.sigma_px[name] ** 2 * np.eye(2)
-    got = model.parameter_covariance.get(name)
-    if got is not None:
-        names, C = got
-        cols = []
-        for p in names:
-            if p in ('fx', 'fy', 'cx', 'cy'):
-                cols.append(pj.d_intr[0][:, ('fx', 'fy', 'cx', 'cy').index(p)])
-            elif p in _DIST:
-                cols.append(pj.d_dist[0][:, _DIST.index(p)])
-            else:
-                cols.append(pj.d_pose[0][:, ('wx', 'wy', 'wz', 'tx', 'ty', 'tz').index(p)])
-        Jc = np.column_stack(cols)
-        Sigma = Sigma + Jc @ C @ Jc.T
-    return pj.uv[0], pj.d_point[0], Sigma, pj.depth[0]
+    uv, J, Sigma, depth = _predict_batch(model, name, np.asarray(X, float).reshape(1, 3), scale)
+    return uv[0], J[0], Sigma[0], depth[0]
 
 
 @dataclass
@@ -294,32 +302,6 @@ def statistics(model: PredictionModel, X0, uvs: Dict[str, np.ndarray]) -> Dict[s
         if got is not None and np.isfinite(got[2]):
             out[name] = got[2]
     return out
-
-
-def _predict_batch(model: PredictionModel, name, X, scale=1.0):
-    """
-    :func:`predict` for many points X (N, 3) at once: (uv, d uv / dX, Sigma (N, 2, 2), depth).
-
-    The same formula, with one projection call and one einsum for all points.
-    """
-    cam = model.cameras[name]
-    pj = project_with_jacobians(cam.intrinsics(), cam.dist, cam.rotation, cam.translation, X)
-    Sigma = np.zeros((X.shape[0], 2, 2))
-    Sigma[:, 0, 0] = Sigma[:, 1, 1] = scale * model.sigma_px[name] ** 2
-    got = model.parameter_covariance.get(name)
-    if got is not None:
-        names, C = got
-        cols = []
-        for p in names:
-            if p in ('fx', 'fy', 'cx', 'cy'):
-                cols.append(pj.d_intr[:, :, ('fx', 'fy', 'cx', 'cy').index(p)])
-            elif p in _DIST:
-                cols.append(pj.d_dist[:, :, _DIST.index(p)])
-            else:
-                cols.append(pj.d_pose[:, :, ('wx', 'wy', 'wz', 'tx', 'ty', 'tz').index(p)])
-        Jc = np.stack(cols, axis=2)
-        Sigma = Sigma + np.einsum('nap,pq,nbq->nab', Jc, C, Jc)
-    return pj.uv, pj.d_point, Sigma, pj.depth
 
 
 def _inv2(S):
