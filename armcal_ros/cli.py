@@ -55,6 +55,23 @@ def _add_simulate(p):
     p.add_argument('--ambient', type=number_arg(float, 0.0, 1.0), default=0.25,
                    help='with --lamp: the fraction of the full brightness the ball\'s unlit '
                         'side keeps (default 0.25)')
+    p.add_argument('--stamp-latency', action='append', default=[], metavar='CAM:SECONDS',
+                   help='camera CAM\'s driver stamps each image SECONDS after its exposure '
+                        '(repeatable; the ground truth keeps the exposure times)')
+    p.add_argument('--joint-jitter', type=number_arg(float, 0.0, 1.0), default=0.0,
+                   metavar='S', help='std (s) of the joint states\' stamps about the control '
+                                     'clock')
+    p.add_argument('--joint-drop', type=number_arg(float, 0.0, 0.99), default=0.0,
+                   metavar='F', help='fraction of the joint states lost')
+    p.add_argument('--backlash', type=number_arg(float, 0.0, 10.0), default=0.0, metavar='DEG',
+                   help='play of every joint (deg): the links lag the readings by half of it '
+                        'against the last motion')
+    p.add_argument('--repeatability', type=number_arg(float, 0.0, 100.0), default=0.0,
+                   metavar='MM', help='std per axis (mm) of where each stop really ends')
+    p.add_argument('--settle', type=number_arg(float, 0.0, 100.0), nargs=3, default=None,
+                   metavar=('MM', 'HZ', 'TAU'),
+                   help='after each stop the structure rings down: MM mm at HZ Hz, decaying '
+                        'with time constant TAU s (e.g. 0.1 10 0.1)')
     p.add_argument('--frame-id-format', default='{camera}_optical_frame',
                    help='the images\' header.frame_id, {camera} standing for the camera\'s name '
                         '(e.g. {camera}_color_optical_frame as a RealSense driver names it)')
@@ -127,6 +144,28 @@ def _run_simulate(args):
     if args.lamp is not None:
         settings = dataclasses.replace(settings, sensor=dataclasses.replace(
             settings.sensor, lamp=tuple(args.lamp), ambient=args.ambient))
+    latency = [0.0] * len(settings.camera_names)
+    for text in args.stamp_latency:
+        cam, _, value = text.rpartition(':')
+        try:
+            seconds = float(value)
+            if not (math.isfinite(seconds) and abs(seconds) <= 1.0):
+                raise ValueError('SECONDS must be finite and within 1 s')
+        except ValueError as err:
+            raise ValueError(f'--stamp-latency expects CAM:SECONDS (e.g. cam1:0.03), got '
+                             f'{text!r}: {err}') from None
+        if cam not in settings.camera_names:
+            raise ValueError(f'--stamp-latency {text!r}: unknown camera {cam!r}; the cell\'s '
+                             f'cameras are {list(settings.camera_names)}')
+        latency[list(settings.camera_names).index(cam)] = seconds
+    settle = args.settle or (0.0, 10.0, 0.1)
+    if args.settle is not None and not (settle[1] > 0 and settle[2] > 0):
+        raise ValueError(f'--settle HZ and TAU must be > 0, got {settle[1]} and {settle[2]}')
+    settings = dataclasses.replace(
+        settings, stamp_latency=tuple(latency) if args.stamp_latency else (),
+        joint_jitter=args.joint_jitter, joint_drop=args.joint_drop,
+        backlash_deg=args.backlash, repeatability_mm=args.repeatability,
+        settle_mm=settle[0], settle_hz=settle[1], settle_tau=settle[2])
     result = simulate_cell(scenario, args.seed, args.duration, settings)
 
     live = not args.quiet and sys.stderr.isatty()   # '\r' updates only on a terminal

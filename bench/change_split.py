@@ -191,8 +191,8 @@ def main(argv=None):
         f'ratio of any camera over each unchanged session, the worst of {args.seeds} seeds (a '
         f'threshold must sit above it); the change columns: the changed camera\'s largest '
         f'ratio for splits from 10 s before to 15 s after the change, per seed. "field": the '
-        f'same after subtracting a smooth residual field fitted to the camera\'s earlier views (GP mean, '
-        f'L = {FIELD_LENGTH} m). Machine: {machine()}.', '',
+        f'same after subtracting a smooth residual field fitted to the camera\'s earlier '
+        f'views (GP mean, L = {FIELD_LENGTH} m). Machine: {machine()}.', '',
         table(['cell', 'split: unchanged max', 'split: 0.5 % focal', 'split: 0.25 deg knock',
                'field: unchanged max', 'field: 0.5 % focal', 'field: 0.25 deg knock'], rows)])
     print(text)

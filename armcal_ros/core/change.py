@@ -186,9 +186,7 @@ _DIST = ('k1', 'k2', 'p1', 'p2', 'k3')
 
 
 def _predict_batch(model: PredictionModel, name, X, scale=1.0):
-    """
-    :func:`predict` for many points X (N, 3) at once: (uv, d uv / dX, Sigma (N, 2, 2), depth).
-    """
+    """Return :func:`predict` for many points X (N, 3): uv, d uv / dX, Sigma (N, 2, 2), depth."""
     cam = model.cameras[name]
     pj = project_with_jacobians(cam.intrinsics(), cam.dist, cam.rotation, cam.translation, X)
     Sigma = np.zeros((X.shape[0], 2, 2))

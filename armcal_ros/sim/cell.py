@@ -51,6 +51,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from armcal_ros.robot.kinematics import KinematicChain
+from armcal_ros.sim.arm_effects import arm_effects
 from armcal_ros.sim.bias_field import FourierBiasField
 from armcal_ros.sim.cameras import ring_of_cameras
 from armcal_ros.sim.render import (clutter_scene, expose, glint_patches, marker_signal,
@@ -198,6 +199,15 @@ class SimSettings:
     compliance_deg: float = 0.02
     sensor: SensorModel = field(default_factory=SensorModel)
     camera_changes: tuple = ()              # CameraChange (or its dictionaries)
+    # What real arms and clocks add, all off by default (module docstring, sim/arm_effects.py)
+    stamp_latency: tuple = ()               # s per camera (camera_names order): late stamps
+    joint_jitter: float = 0.0               # s, std of the joint states' stamps
+    joint_drop: float = 0.0                 # fraction of joint states lost
+    backlash_deg: float = 0.0               # per joint, total play
+    repeatability_mm: float = 0.0           # per axis, where each stop really ends
+    settle_mm: float = 0.0                  # ring-down amplitude after each stop
+    settle_hz: float = 10.0
+    settle_tau: float = 0.1                 # s
 
     def __post_init__(self):
         if isinstance(self.sensor, dict):
@@ -222,6 +232,16 @@ class SimSettings:
                              f'got {self.error_model!r}')
         if len(self.camera_names) < 1:
             raise ValueError('camera_names must name at least one camera')
+        lat = np.asarray(self.stamp_latency, float).reshape(-1)
+        if lat.size > len(self.camera_names) or not np.all(np.isfinite(lat)) or \
+                np.any(np.abs(lat) > 1.0):
+            raise ValueError(f'stamp_latency must give at most one latency per camera, each '
+                             f'within 1 s, got {self.stamp_latency}')
+        self.stamp_latency = tuple(float(v) for v in lat)
+        if not (np.isfinite(self.joint_jitter) and self.joint_jitter >= 0.0):
+            raise ValueError(f'joint_jitter must be >= 0 (s), got {self.joint_jitter}')
+        if not 0.0 <= self.joint_drop < 1.0:
+            raise ValueError(f'joint_drop must be in [0, 1), got {self.joint_drop}')
 
     def to_dict(self):
         """Plain dictionary (YAML-safe); ``camera_changes`` only when there are some."""
@@ -662,6 +682,14 @@ def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, ch
     pos_all = np.column_stack([q_js] + [grip] * len(extra))
     vel_all = np.column_stack([qd_js] + [np.zeros_like(grip)] * len(extra))
     js_stamps = START_TIME_NS + np.round(t_js * 1e9).astype(np.int64)
+    if s.joint_jitter > 0.0 or s.joint_drop > 0.0:
+        # Their own random stream: every other draw stays as without them.
+        rng_js = np.random.default_rng([seed, 5527])
+        js_stamps = js_stamps + np.round(rng_js.normal(0.0, s.joint_jitter, len(js_stamps))
+                                         * 1e9).astype(np.int64)
+        keep = np.flatnonzero(rng_js.random(len(js_stamps)) >= s.joint_drop)
+        keep = keep[np.argsort(js_stamps[keep], kind='stable')]   # published in stamp order
+        js_stamps, pos_all, vel_all = js_stamps[keep], pos_all[keep], vel_all[keep]
 
     # camera clocks
     sens = s.sensor
@@ -673,6 +701,8 @@ def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, ch
         t_exp = rng.uniform(0.0, period) + np.arange(0.0, T, period)
         t_exp = t_exp[(t_exp > 0.1) & (t_exp < T - 0.1)]
         stamp = t_exp + rng.normal(0.0, s.stamp_jitter, len(t_exp))
+        if j < len(s.stamp_latency):
+            stamp = stamp + s.stamp_latency[j]
         log = t_exp + 0.5 * sens.exposure + rng.uniform(*s.image_latency, len(t_exp))
         # random occlusion spans
         hidden = np.zeros(len(t_exp), bool)
@@ -696,9 +726,16 @@ def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, ch
 
     t_all = (t_exp[:, None] + offsets[None, :]).reshape(-1)
     q_all = traj.positions(t_all)
-    x_all = robot.marker(q_all).reshape(len(t_exp), K, 3)
     q_mid = traj.positions(t_exp)
-    x_mid = robot.marker(q_mid)
+    effects = arm_effects(traj, s.backlash_deg, s.repeatability_mm, s.settle_mm, s.settle_hz,
+                          s.settle_tau, seed)
+    if effects is None:
+        x_all = robot.marker(q_all).reshape(len(t_exp), K, 3)
+        x_mid = robot.marker(q_mid)
+    else:
+        x_all = (robot.marker(effects.link_joints(q_all, t_all)) +
+                 effects.displacement(t_all)).reshape(len(t_exp), K, 3)
+        x_mid = robot.marker(effects.link_joints(q_mid, t_exp)) + effects.displacement(t_exp)
     uv = np.zeros((len(t_exp), 2))
     occ = np.zeros(len(t_exp), np.int8)
     for j in range(len(cams)):
@@ -722,7 +759,13 @@ def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, ch
     spans = spans[spans[:, 0] < T]
     spans[:, 1] = np.minimum(spans[:, 1], T)
     q_d = traj.dwell_knots()[:len(spans)]
-    dwells = DwellTruth(to_ns(spans[:, 0]), to_ns(spans[:, 1]), q_d, robot.marker(q_d),
+    true_d = robot.marker(q_d)
+    if effects is not None:
+        # Where each stop really rests: the links behind the play, off by the stop's
+        # repeatability (the ring-down has decayed).
+        mid = 0.5 * (spans[:, 0] + spans[:, 1])
+        true_d = robot.marker(effects.link_joints(q_d, mid)) + effects.resting_offset(mid)
+    dwells = DwellTruth(to_ns(spans[:, 0]), to_ns(spans[:, 1]), q_d, true_d,
                         robot.nominal_marker(q_d))
     return SimResult(scenario, seed, s, robot, cams, traj, pub_names, js_stamps,
                      np.ascontiguousarray(pos_all[:, order]),
