@@ -73,7 +73,7 @@ from armcal_ros.io.results_files import write_driver_camera_info
 from armcal_ros.params import BY_NAME, check_value, NODE_NAME, PARAMS, resolve_paths
 from armcal_ros.ros import conversions as conv
 from armcal_ros.ros.event_queue import EventQueue
-from armcal_ros.ros.memory import release_free_memory
+from armcal_ros.ros.memory import fix_allocator, release_free_memory
 from armcal_ros.ros.raw_message import header_fields, LazyMessage
 from armcal_ros.ros.status import diagnostic_statuses, NodeState
 from armcal_ros.settings import (settings_from_values, with_given_intrinsics,
@@ -914,6 +914,7 @@ def main(args=None):
     SIGINT ignored, and Python then installs no KeyboardInterrupt handler of its own.
     """
     argv = sys.argv if args is None else args
+    fix_allocator()       # before DDS starts its threads (armcal_ros/ros/memory.py)
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
