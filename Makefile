@@ -44,6 +44,8 @@ bench: $(STAMP)
 	$(PY) bench/hyperparameters.py
 	$(PY) bench/changes.py
 	$(PY) bench/realism.py
+	$(PY) bench/arm_effects.py
+	$(PY) bench/change_split.py
 	$(PY) bench/real_data.py
 
 clean:
