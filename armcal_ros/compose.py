@@ -211,5 +211,6 @@ def build_pipeline(settings: Settings, log: Optional[Callable[[str], None]] = No
                                 fe.max_marker_speed, fe.dwell_radius, log=log, board=target,
                                 max_views_per_dwell=det.max_views_per_dwell,
                                 min_frames=min_frames_per_dwell(settings),
-                                cameras_on_link=settings.target.eye_in_hand)
+                                cameras_on_link=settings.target.eye_in_hand,
+                                still_guard_s=fe.still_guard)
     return Pipeline(chain, board, collector, build_engine(settings, chain, target))

@@ -166,6 +166,10 @@ PARAMS = [
           'stillness: marker speed (m/s) above which a frame is not used; the default moves the '
           'image 0.1 px over 5 ms of stamp error at f = 800 px and 1.5 m', _positive,
           minimum=0.0),
+    Param('still_guard', 'double', 0.0,
+          'stillness must also have held this long (s) before a frame\'s stamp: set it to the '
+          'cameras\' stamp latency when their drivers stamp images on arrival (USB, GigE: '
+          '0.03-0.1 s); 0 judges stillness at the stamp only', _nonneg, minimum=0.0),
     Param('dwell_radius', 'double', 0.001,
           'still frames within this distance (m) of a dwell\'s first are pooled into one sample',
           _positive, minimum=0.0),
@@ -308,7 +312,7 @@ PARAMS = [
 _MAXIMA = {
     'pixel_sigma': 50.0, 'point_sigma': 1.0, 'bias_sigma': 1.0, 'coherence_length': 100.0,
     'solve_period': 86400.0, 'robust_loss_scale': 1000.0, 'outlier_gate_sigmas': 1000.0,
-    'max_marker_speed': 100.0, 'dwell_radius': 1.0, 'min_sample_spacing': 1.0,
+    'max_marker_speed': 100.0, 'still_guard': 10.0, 'dwell_radius': 1.0, 'min_sample_spacing': 1.0,
     'max_sample_age': 10.0 * 365 * 86400, 'sphere_min_radius_px': 10000.0,
     'sphere_max_radius_px': 10000.0, 'aruco_size': 10.0, 'charuco_square_size': 10.0,
     'charuco_marker_size': 10.0, 'marker_radius': 1.0, 'intrinsics_sigma_px': 100000.0,

@@ -16,7 +16,7 @@ part           parameters
 ``target``     marker_type, charuco_*, aruco_size, target_pose_guess, estimate_marker_offset,
                eye_in_hand, estimate_aruco_size
 ``detector``   sphere_*, aruco_*, max_views_per_dwell
-``front_end``  max_marker_speed, dwell_radius
+``front_end``  max_marker_speed, dwell_radius, still_guard
 ``store``      max_samples, min_sample_spacing
 ``prior``      noise_model, point_sigma, bias_sigma, coherence_length, kernel
 ``solver``     pixel_sigma, free_distortion, robust_loss(_scale), outlier_gate_sigmas, and the
@@ -181,6 +181,7 @@ class FrontEndSettings:
 
     max_marker_speed: float = 0.0375
     dwell_radius: float = 0.001
+    still_guard: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -367,7 +368,7 @@ def settings_from_values(values: Dict[str, Any], require_robot_model=True,
                                   v['sphere_static_scene'], v['aruco_dictionary'],
                                   None if aruco_id < 0 else aruco_id,
                                   v['max_views_per_dwell']),
-        front_end=FrontEndSettings(v['max_marker_speed'], v['dwell_radius']),
+        front_end=FrontEndSettings(v['max_marker_speed'], v['dwell_radius'], v['still_guard']),
         store=StoreSettings(v['max_samples'], v['min_sample_spacing']),
         prior=prior_settings(v),
         solver=solver_settings(v),

@@ -179,6 +179,27 @@ def test_speed_threshold_is_applied():
     assert slow.add_frame('c', 1500 * MS)[0].status is PairStatus.STILL   # 0.2 rad/s ~ 0.15 m/s
 
 
+def test_a_still_guard_needs_stillness_before_the_stamp_too():
+    """A frame stamped 50 ms after the arm stopped: still at its stamp, not 100 ms before."""
+    def move_then_still(pairer):
+        out = []
+        for k in range(400):                                   # 2 s at 200 Hz
+            t = k * 5 * MS
+            q0 = 0.2 + 0.2 * min(t, 1000 * MS) * 1e-9         # turns until 1 s, then stops
+            out += pairer.add_joint_state(t, JOINTS, [q0, 0.9])[1]
+        return out
+
+    def status(guard_ms, stamp_ms):
+        pairer = FramePairer(JOINTS, fk, still_guard_ns=guard_ms * MS)
+        pairer.add_frame('c', stamp_ms * MS)
+        return [f.status for f in move_then_still(pairer) + pairer.flush()][0]
+    assert status(0, 1050) is PairStatus.STILL
+    assert status(100, 1050) is PairStatus.MOVING
+    assert status(100, 1200) is PairStatus.STILL
+    with pytest.raises(ValueError, match='still_guard_ns'):
+        FramePairer(JOINTS, fk, still_guard_ns=-1)
+
+
 def test_frames_before_history_and_stale():
     pairer = FramePairer(JOINTS, fk, max_pending=3)
     dwell_then_move(pairer, t0_ms=1000, t1_ms=2000)

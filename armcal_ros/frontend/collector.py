@@ -106,7 +106,7 @@ class SampleCollector:
                  max_marker_speed=0.0375, dwell_radius=0.001, log=None,
                  board: Optional[BoardTarget] = None, max_pose_gap_s=0.1, min_frames=None,
                  cameras_on_link=False,
-                 max_views_per_dwell=3):
+                 max_views_per_dwell=3, still_guard_s=0.0):
         self.chain = chain
         self.pose_input = chain is None
         self.board = board
@@ -133,7 +133,8 @@ class SampleCollector:
                 return pose_points(C, ref)
             history = PoseHistory(max_gap_ns=int(max_pose_gap_s * 1e9))
             self.pairer = FramePairer((), fk, max_marker_speed=max_marker_speed,
-                                      history=history)
+                                      history=history,
+                                      still_guard_ns=int(round(still_guard_s * 1e9)))
             mean = mean_pose_vector
         else:
             if board is None:
@@ -143,7 +144,8 @@ class SampleCollector:
                 def fk(Q):
                     T = chain.fk_pose(Q)
                     return np.einsum('mij,rj->mri', T[:, :3, :3], ref) + T[:, None, :3, 3]
-            self.pairer = FramePairer(chain.joint_names, fk, max_marker_speed=max_marker_speed)
+            self.pairer = FramePairer(chain.joint_names, fk, max_marker_speed=max_marker_speed,
+                                      still_guard_ns=int(round(still_guard_s * 1e9)))
             mean = None
         if min_frames is None:
             min_frames = 1 if board is not None else 2

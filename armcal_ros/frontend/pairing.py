@@ -307,7 +307,11 @@ class FramePairer:
 
     over the interpolated joint history: the window averages out joint-encoder noise over the
     few ms between JointState messages, and the max of the two halves still catches the arm
-    reversing through t.  A frame is STILL when v <= ``max_marker_speed``.
+    reversing through t.  A frame is STILL when v <= ``max_marker_speed``; with a
+    ``still_guard_ns`` g > 0, the speed over [t - g - W, t - g] must be below it too: a camera
+    whose driver stamps its images up to g late (on arrival) exposed them while the arm may
+    still have been coming to rest, and those frames would pull the dwell's image mean along
+    the approach while its joint mean stays put.
 
     Frames wait (at most ``max_pending`` of them) until the history reaches t + W.
 
@@ -320,7 +324,7 @@ class FramePairer:
     def __init__(self, joint_names, fk, max_marker_speed=DEFAULT_MAX_MARKER_SPEED,
                  speed_window_ns=20_000_000, max_gap_ns=50_000_000,
                  jump_threshold_ns=500_000_000, capacity=4096, max_pending=256,
-                 batch_ns=100_000_000, history=None):
+                 batch_ns=100_000_000, history=None, still_guard_ns=0):
         if not callable(fk):
             raise ValueError('fk must be callable: fk(Q (M, n)) -> (M, 3)')
         self.fk = fk
@@ -334,6 +338,9 @@ class FramePairer:
         self.speed_window_ns = _as_int_ns(speed_window_ns, 'speed_window_ns')
         if self.speed_window_ns <= 0:
             raise ValueError(f'speed_window_ns must be positive, got {speed_window_ns}')
+        self.still_guard_ns = _as_int_ns(still_guard_ns, 'still_guard_ns')
+        if self.still_guard_ns < 0:
+            raise ValueError(f'still_guard_ns must be >= 0, got {still_guard_ns}')
         if int(max_pending) < 1:
             raise ValueError(f'max_pending must be >= 1, got {max_pending!r}')
         self.max_pending = int(max_pending)
@@ -429,16 +436,18 @@ class FramePairer:
         return out
 
     def _pair(self, frames):
-        w = self.speed_window_ns
-        stamps = np.array([[s - w, s, s + w] for _, s, _ in frames], dtype=np.int64)
+        w, g = self.speed_window_ns, self.still_guard_ns
+        # Per frame: t - W, t, t + W and, with a guard, t - g - W, t - g.
+        offsets = [-w, 0, w] + ([-g - w, -g] if g else [])
+        stamps = np.array([[s + o for o in offsets] for _, s, _ in frames], dtype=np.int64)
         statuses, q = self.history.lookup(stamps.reshape(-1))
-        statuses = statuses.reshape(-1, 3)
-        q = q.reshape(len(frames), 3, -1)
+        statuses = statuses.reshape(len(frames), len(offsets))
+        q = q.reshape(len(frames), len(offsets), -1)
         good = np.array([all(s is PairStatus.OK for s in row) for row in statuses])
         points = None
         if np.any(good):
             p = np.asarray(self.fk(q[good].reshape(-1, q.shape[2])), dtype=float)
-            p = p.reshape(int(np.count_nonzero(good)), 3, -1, 3)
+            p = p.reshape(int(np.count_nonzero(good)), len(offsets), -1, 3)
             points = np.full((len(frames),) + p.shape[1:], np.nan)
             points[good] = p
         out = []
@@ -452,9 +461,12 @@ class FramePairer:
                     status = PairStatus.BEFORE_HISTORY
                 out.append(PairedFrame(camera, stamp, payload, status))
                 continue
-            p0, p1, p2 = points[i]
+            p0, p1, p2 = points[i][:3]
             speed = max(np.linalg.norm(p1 - p0, axis=1).max(),
                         np.linalg.norm(p2 - p1, axis=1).max()) / (w * 1e-9)
+            if g:
+                speed = max(speed, np.linalg.norm(points[i][4] - points[i][3], axis=1).max()
+                            / (w * 1e-9))
             status = PairStatus.STILL if speed <= self.max_marker_speed else PairStatus.MOVING
             point = p1[0].copy() if len(p1) == 1 else p1.copy()
             out.append(PairedFrame(camera, stamp, payload, status, q=q[i, 1].copy(),
