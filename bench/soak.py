@@ -302,7 +302,8 @@ def main():
         '',
         f'Memory of each node process from one cell-hour after its start (the sample store '
         f'full) to its end: {flat} (target: within 10 %). The node returns the heap\'s free '
-        f'pages to the system after each solve (malloc_trim; armcal_ros/ros/memory.py). '
+        f'pages to the system after each solve (malloc_trim) and pins glibc\'s mmap '
+        f'threshold (armcal_ros/ros/memory.py). '
         f'Restart at {restart.get("cell_h", float("nan")):.1f} cell-hours: '
         f'{restart.get("before")} samples stored before, "{restart.get("restored")}" after. '
         f'The node exited cleanly at the end: {alive}. Bad inputs sent: {abuse.sent}. Final '
