@@ -243,33 +243,53 @@ def fuse(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=None,
     names = [n for n in uvs if n in model.cameras]
     if not use_arm and len(names) < 2:
         return None
+    X, cov, chi, ok = _fuse_batch(
+        model, X0[None], {n: np.asarray(uvs[n], float).reshape(1, 2) for n in names},
+        {n: np.ones(1, bool) for n in names}, scales, use_arm)
+    if not ok[0]:
+        return None
+    return Fusion(X[0], cov[0], float(chi[0]), 2 * len(names) - (0 if use_arm else 3))
+
+
+def _fuse_batch(model: PredictionModel, X0, uv, seen, scales=None, use_arm=True):
+    """
+    :func:`fuse` for N points at once: X0 (N, 3), per camera uv (N, 2) and seen (N,) bool.
+
+    Returns (X (N, 3), H^-1 (N, 3, 3), chi^2 (N,), ok (N,)); a point whose information matrix
+    is singular or not finite is not ok (its entries are NaN).
+    """
+    N = X0.shape[0]
     w_arm = 1.0 / model.arm_sigma ** 2 if use_arm else 0.0
     X = X0.copy()
+    ok = np.ones(N, bool)
 
-    def terms(X):
-        out = []
-        for n in names:
-            uv, J, Sigma, _ = predict(model, n, X, 1.0 if scales is None else scales.get(n, 1.0))
-            out.append((np.asarray(uvs[n], float).reshape(2) - uv, J, np.linalg.inv(Sigma)))
-        return out
-
-    try:
-        for _ in range(FUSION_ITERATIONS):
-            H = np.eye(3) * w_arm
+    def invertible(H):
+        return ok & np.all(np.isfinite(H), axis=(1, 2)) & (
+            np.abs(np.linalg.det(np.where(ok[:, None, None], H, np.eye(3)))) > 0)
+    with np.errstate(all='ignore'):
+        for it in range(FUSION_ITERATIONS + 1):
+            H = np.zeros((N, 3, 3))
+            H[:, [0, 1, 2], [0, 1, 2]] = w_arm
             g = w_arm * (X0 - X)
-            for r, J, W in terms(X):
-                H += J.T @ W @ J
-                g += J.T @ W @ r
-            X = X + np.linalg.solve(H, g)
-        H = np.eye(3) * w_arm
-        chi = w_arm * float(np.sum((X - X0) ** 2))
-        for r, J, W in terms(X):
-            H += J.T @ W @ J
-            chi += float(r @ W @ r)
-        cov = np.linalg.inv(H)
-    except np.linalg.LinAlgError:
-        return None
-    return Fusion(X, cov, chi, 2 * len(names) - (0 if use_arm else 3))
+            chi = w_arm * np.sum((X - X0) ** 2, axis=1)
+            for n, m in seen.items():
+                if not np.any(m):
+                    continue
+                k = 1.0 if scales is None else scales.get(n, 1.0)
+                u, J, Sigma, _ = _predict_batch(model, n, X[m], k)
+                W = _inv2(Sigma)
+                r = uv[n][m] - u
+                JtW = np.einsum('nak,nab->nkb', J, W)
+                H[m] += np.einsum('nkb,nbl->nkl', JtW, J)
+                g[m] += np.einsum('nkb,nb->nk', JtW, r)
+                chi[m] += np.einsum('na,nab,nb->n', r, W, r)
+                ok[m] &= np.all(np.isfinite(W), axis=(1, 2))
+            ok &= invertible(H)
+            if it < FUSION_ITERATIONS:
+                X[ok] = X[ok] + np.linalg.solve(H[ok], g[ok][:, :, None])[:, :, 0]
+        cov = np.full((N, 3, 3), np.nan)
+        cov[ok] = np.linalg.inv(H[ok])
+    return X, cov, chi, ok
 
 
 def innovation(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], camera):
@@ -328,41 +348,15 @@ def statistics_batch(model: PredictionModel, points, observations) -> Dict[str, 
     seen = {n: np.array([n in o for o in observations]) for n in names}
     uv = {n: np.array([np.asarray(o[n], float).reshape(2) if n in o else (np.nan, np.nan)
                        for o in observations]).reshape(N, 2) for n in names}
-    w_arm = 1.0 / model.arm_sigma ** 2
     out = {}
     for left in names:
         rows = np.flatnonzero(seen[left])
         if rows.size == 0:
             continue
-        others = [n for n in names if n != left]
-        X = X0[rows].copy()
-        ok = np.ones(rows.size, bool)
+        others = {n: seen[n][rows] for n in names if n != left}
+        X, cov, _, inv_ok = _fuse_batch(model, X0[rows], {n: uv[n][rows] for n in others},
+                                        others)
         with np.errstate(all='ignore'):
-            for it in range(FUSION_ITERATIONS + 1):
-                H = np.zeros((rows.size, 3, 3))
-                H[:, [0, 1, 2], [0, 1, 2]] = w_arm
-                g = w_arm * (X0[rows] - X)
-                for n in others:
-                    m = seen[n][rows]
-                    if not np.any(m):
-                        continue
-                    u, J, Sigma, _ = _predict_batch(model, n, X[m])
-                    W = _inv2(Sigma)
-                    r = uv[n][rows[m]] - u
-                    JtW = np.einsum('nak,nab->nkb', J, W)
-                    H[m] += np.einsum('nkb,nbl->nkl', JtW, J)
-                    g[m] += np.einsum('nkb,nb->nk', JtW, r)
-                    ok[m] &= np.all(np.isfinite(W), axis=(1, 2))
-                if it < FUSION_ITERATIONS:
-                    good = ok & np.all(np.isfinite(H), axis=(1, 2)) & \
-                        (np.abs(np.linalg.det(np.where(ok[:, None, None], H, np.eye(3))))
-                         > 0)
-                    ok &= good
-                    X[ok] = X[ok] + np.linalg.solve(H[ok], g[ok][:, :, None])[:, :, 0]
-            cov = np.full((rows.size, 3, 3), np.nan)
-            inv_ok = ok & (np.abs(np.linalg.det(np.where(ok[:, None, None], H, np.eye(3))))
-                           > 0)
-            cov[inv_ok] = np.linalg.inv(H[inv_ok])
             u, J, Sigma, depth = _predict_batch(model, left, X)
             r = uv[left][rows] - u
             S = Sigma + np.einsum('nak,nkl,nbl->nab', J, cov, J)
