@@ -109,7 +109,8 @@ def build_detectors(settings: Settings, camera_names, board: Optional[CharucoBoa
         elif kind == 'sphere':
             out[name] = make_detector('sphere', min_radius_px=det.sphere_min_radius_px,
                                       max_radius_px=det.sphere_max_radius_px,
-                                      static_scene=det.sphere_static_scene)
+                                      static_scene=det.sphere_static_scene,
+                                      centre=det.sphere_centre)
         else:
             out[name] = make_detector('aruco', dictionary=det.aruco_dictionary,
                                       marker_id=det.aruco_id, corners=settings.target.tag_corners)

@@ -26,6 +26,8 @@ from armcal_ros.core.robust import LOSSES
 
 NAME_RE = re.compile(r'^[A-Za-z0-9_]+$')
 MARKER_TYPES = ('sphere', 'aruco', 'charuco')
+#: SphereDetector.CENTRES (frontend/detectors/sphere.py)
+SPHERE_CENTRES = ('centroid', 'shaded')
 POSE_TYPES = ('pose_stamped', 'transform_stamped')
 NODE_NAME = 'armcal'
 #: Parameters that name files: a relative path is resolved against the parameter file's folder.
@@ -204,6 +206,13 @@ PARAMS = [
           'and subtract it before the sphere search: clutter and static look-alikes (lamps, '
           'bolt heads) vanish; a marker parked for about 120 images becomes scenery until it '
           'moves'),
+    Param('sphere_centre', 'string', 'centroid',
+          'how the sphere\'s centre is measured: centroid (intensity-weighted; right for a '
+          'ball that glows alike from every side, an LED in a diffuser) or shaded (a fit of '
+          'a shaded ball - outline, one lamp from any side, ambient, blur - whose centre does '
+          'not move with the light; for a matte or painted ball under the cell\'s lamps; '
+          'about twice the noise of the centroid and 1-2 ms per still frame)',
+          _one_of(SPHERE_CENTRES)),
     Param('aruco_dictionary', 'string', 'DICT_4X4_50', 'ArUco dictionary (cv2.aruco name)'),
     Param('aruco_id', 'int', -1, 'ArUco id of the marker (-1: any)'),
     Param('aruco_size', 'double', 0.0,

@@ -173,6 +173,7 @@ class DetectorSettings:
     aruco_dictionary: str = 'DICT_4X4_50'
     aruco_id: Optional[int] = None
     max_views_per_dwell: int = 3
+    sphere_centre: str = 'centroid'
 
 
 @dataclass(frozen=True)
@@ -367,7 +368,7 @@ def settings_from_values(values: Dict[str, Any], require_robot_model=True,
         detector=DetectorSettings(v['sphere_min_radius_px'], v['sphere_max_radius_px'],
                                   v['sphere_static_scene'], v['aruco_dictionary'],
                                   None if aruco_id < 0 else aruco_id,
-                                  v['max_views_per_dwell']),
+                                  v['max_views_per_dwell'], v['sphere_centre']),
         front_end=FrontEndSettings(v['max_marker_speed'], v['dwell_radius'], v['still_guard']),
         store=StoreSettings(v['max_samples'], v['min_sample_spacing']),
         prior=prior_settings(v),

@@ -38,6 +38,14 @@ from armcal_ros.sim.cell import simulate_cell  # noqa: E402
 from armcal_ros.sim.cells import CELLS  # noqa: E402
 
 CELL_NAMES = ('puma-3cam', 'ur5-2cam')
+#: The sphere detector's centres (``sphere_centre``): intensity centroid, shaded-ball fit.
+CENTRES = ('centroid', 'shaded')
+#: The pipeline's runs: (label, lighting, marker_lamp given, sphere_centre).
+PIPELINE_RUNS = (('uniform', 'uniform', False, 'centroid'),
+                 ('uniform, shaded fit', 'uniform', False, 'shaded'),
+                 ('lamp, not corrected', 'lamp', False, 'centroid'),
+                 ('lamp, corrected (lamp given)', 'lamp', True, 'centroid'),
+                 ('lamp, shaded fit', 'lamp', False, 'shaded'))
 LAMP_HEIGHT = 1.5          # m above the workspace centre
 AMBIENT = 0.25
 
@@ -58,20 +66,25 @@ def detect_session(args):
     if lighting == 'lamp':
         sensor = replace(sensor, lamp=lamp_of(settings), ambient=AMBIENT)
     f = sim.frames
-    detectors = {cam.name: make_detector('sphere') for cam in sim.cameras}
-    out = {cam.name: dict(errors=[], visible=0) for cam in sim.cameras}
+    detectors = {centre: {cam.name: make_detector('sphere', centre=centre)
+                          for cam in sim.cameras} for centre in CENTRES}
+    out = {centre: {cam.name: dict(errors=[], visible=0) for cam in sim.cameras}
+           for centre in CENTRES}
     for i in range(len(f)):
         cam = sim.cameras[int(f.camera[i])].name
         image = sim.render(i, 'mono8', sensor=sensor)
-        dets = detectors[cam].detect(image)
-        if f.occlusion[i] != 0:
-            continue
-        out[cam]['visible'] += 1
-        if dets:
-            e = dets[0].uv - f.uv[i]
-            if np.hypot(*e) <= 3.0:
-                out[cam]['errors'].append(e.tolist())
-    return dict(cell=cell, seed=seed, lighting=lighting, cameras=out)
+        for centre in CENTRES:
+            dets = detectors[centre][cam].detect(image)
+            if f.occlusion[i] != 0:
+                continue
+            got = out[centre][cam]
+            got['visible'] += 1
+            if dets:
+                e = dets[0].uv - f.uv[i]
+                if np.hypot(*e) <= 3.0:
+                    got['errors'].append(e.tolist())
+    return [dict(cell=cell, seed=seed, lighting=lighting, centre=centre, cameras=out[centre])
+            for centre in CENTRES]
 
 
 def pipeline_case(args):
@@ -84,17 +97,19 @@ def pipeline_case(args):
             bag = os.path.join(tmp, label)
             assert armcal(['simulate', '--cell', cell, '--seed', str(seed), '--duration',
                            str(duration), '--output', bag, '--no-zstd', '--quiet', *extra]) == 0
-            params = os.path.join(bag, 'ground_truth', 'params.yaml')
-            runs = [(label, params)]
-            if label == 'lamp':
-                doc = yaml.safe_load(open(params))
-                doc['armcal']['ros__parameters']['marker_lamp'] = []
-                blind = os.path.join(tmp, 'blind.yaml')
-                with open(blind, 'w') as f:
+            base = yaml.safe_load(open(os.path.join(bag, 'ground_truth', 'params.yaml')))
+            for name, lighting, lamp_given, centre in PIPELINE_RUNS:
+                if lighting != label:
+                    continue
+                doc = yaml.safe_load(yaml.safe_dump(base))
+                p_doc = doc['armcal']['ros__parameters']
+                if not lamp_given:
+                    p_doc['marker_lamp'] = []
+                p_doc['sphere_centre'] = centre
+                p = os.path.join(tmp, 'params.yaml')
+                with open(p, 'w') as f:
                     yaml.safe_dump(doc, f)
-                runs = [('lamp, not corrected', blind), ('lamp, corrected', params)]
-            for name, p in runs:
-                res = os.path.join(tmp, name.replace(' ', '_').replace(',', ''))
+                res = os.path.join(tmp, ''.join(ch if ch.isalnum() else '_' for ch in name))
                 assert armcal(['calibrate', bag, '--params', p, '--output', res,
                                '--quiet']) == 0
                 est = {c.name: c for c in read_cameras(res)[1]}
@@ -153,21 +168,22 @@ def main(argv=None):
     pipe_jobs = [(cell, seed, args.pipeline_duration) for cell in CELL_NAMES
                  for seed in range(args.pipeline_seeds)]
     with Pool(args.processes) as pool:
-        runs = pool.map(detect_session, jobs, chunksize=1)
+        runs = [r for rs in pool.map(detect_session, jobs, chunksize=1) for r in rs]
         pipes = pool.map(pipeline_case, pipe_jobs, chunksize=1)
         search = lamp_search(args.pipeline_duration)
     prow = []
     for cell in CELL_NAMES:
         ps = [p for p in pipes if p['cell'] == cell]
-        for name in ('uniform', 'lamp, not corrected', 'lamp, corrected'):
+        for name, *_ in PIPELINE_RUNS:
             prow.append([cell, name] + [
                 f'{np.median([p[name][k] for p in ps]):.3f} '
                 f'({max(p[name][k] for p in ps):.3f})'
                 for k in ('shape_mm', 'absolute_mm', 'focal_pct')])
     rows = []
     for cell in CELL_NAMES:
-        for lighting in ('uniform', 'lamp'):
-            rs = [r for r in runs if (r['cell'], r['lighting']) == (cell, lighting)]
+        for lighting, centre in ((lg, c) for lg in ('uniform', 'lamp') for c in CENTRES):
+            rs = [r for r in runs if (r['cell'], r['lighting'], r['centre']) ==
+                  (cell, lighting, centre)]
             for cam in rs[0]['cameras']:
                 shifts, errs, vis, hit = [], [], 0, 0
                 for r in rs:
@@ -178,27 +194,31 @@ def main(argv=None):
                     errs += list(np.hypot(e[:, 0], e[:, 1]))
                     if len(e):
                         shifts.append(np.hypot(*e.mean(axis=0)))
-                rows.append([cell, lighting, cam, f'{np.median(shifts):.3f}',
+                rows.append([cell, lighting, centre, cam, f'{np.median(shifts):.3f}',
                              f'{np.max(shifts):.3f}', f'{np.median(errs):.3f}',
                              f'{np.percentile(errs, 99):.3f}', f'{100.0 * hit / vis:.2f}'])
     md = ['## Realistic markers: the detector under one-sided light (bench/realism.py)', '',
           f'{args.seeds} seeds x {args.duration:.0f} s per cell, every visible frame rendered '
           'twice: a sphere glowing alike from every side (uniform), and a matte ball lit by '
           f'one lamp {LAMP_HEIGHT} m above the workspace centre with {AMBIENT:.0%} ambient '
-          '(lamp); the current sphere detector (background-subtracted intensity centroid) in '
-          'frame order. Mean shift: the length of the mean error vector per camera and seed '
-          '(median and worst over the seeds) - the bias that pooling a dwell\'s frames does '
-          'not remove; error: |detected - true projection| over every frame; recall: '
-          'detections within 3 px of the truth over visible frames. Target (all effects '
-          f'together): bias under 0.05 px per camera. Measured on {machine()}.', '',
-          table(['cell', 'lighting', 'camera', 'mean shift px (median)', 'mean shift px (worst)',
-                 'median error px', '99th pct px', 'recall %'], rows), '',
+          '(lamp); the sphere detector in frame order, with each centre (`sphere_centre`): '
+          'the background-subtracted intensity centroid, and the fit of a shaded ball '
+          '(frontend/detectors/shaded_sphere.py; frames in transit, moved over 2 px since the '
+          'last, get the centroid plus the last fit\'s offset). Mean shift: the length of '
+          'the mean error vector per camera and seed (median and worst over the seeds) - the '
+          'bias that pooling a dwell\'s frames does not remove; error: |detected - true '
+          'projection| over every frame; recall: detections within 3 px of the truth over '
+          'visible frames. Target (all effects together): bias under 0.05 px per camera. '
+          f'Measured on {machine()}.', '',
+          table(['cell', 'lighting', 'centre', 'camera', 'mean shift px (median)',
+                 'mean shift px (worst)', 'median error px', '99th pct px', 'recall %'], rows), '',
           f'Through the whole pipeline ({args.pipeline_seeds} seeds x '
           f'{args.pipeline_duration:.0f} s per cell, `auto`; median (worst) over the seeds): '
-          'the same cell under uniform light, and lit by the lamp with `marker_lamp` left '
-          'empty (not corrected) and given (corrected: each view\'s offset computed from the '
-          'ball\'s shading, core/marker_light.py). The lamp\'s place is the simulator\'s (what '
-          'a user of the cell would measure).', '',
+          'the same cell under uniform light, and lit by the lamp: the centroid with '
+          '`marker_lamp` left empty (not corrected) and given (each view\'s offset computed '
+          'from the ball\'s shading, core/marker_light.py; the lamp\'s place is the '
+          'simulator\'s, what a user of the cell would measure), and the shaded-ball fit '
+          '(`sphere_centre: shaded`, no lamp given), also under uniform light.', '',
           table(['cell', 'lighting', 'shape mm', 'absolute mm', 'focal %'], prow), '',
           'Can the data find the lamp? One lit puma-3cam recording (seed 0) calibrated with '
           '`kinematic` given no lamp, the true one and lamps a metre off: the image noise '
@@ -207,7 +227,8 @@ def main(argv=None):
     text = '\n'.join(md)
     print(text)
     write_section('realism', text)
-    summary = [dict(cell=r['cell'], seed=r['seed'], lighting=r['lighting'], cameras={
+    summary = [dict(cell=r['cell'], seed=r['seed'], lighting=r['lighting'], centre=r['centre'],
+                    cameras={
         cam: dict(visible=got['visible'], detected=len(got['errors']),
                   mean_error_px=np.mean(np.reshape(got['errors'], (-1, 2)), axis=0).tolist(),
                   median_px=float(np.median(np.hypot(*np.reshape(got['errors'], (-1, 2)).T))),

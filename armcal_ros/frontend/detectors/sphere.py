@@ -13,6 +13,7 @@ import cv2
 
 from armcal_ros.frontend.detectors.base import (check_fraction, check_positive, Detection,
                                                 Detector, to_gray, white_level)
+from armcal_ros.frontend.detectors.shaded_sphere import fit_shaded_sphere
 
 
 def _median(values):
@@ -73,9 +74,17 @@ class SphereDetector(Detector):
     ``quality = roundness * max(0, 1 - competitor_score / chosen_score)`` (1 for a perfectly
     round, unique blob; near 0 when a comparable competitor was set aside by tracking).
 
-    Sub-pixel accuracy comes from the background-subtracted intensity-weighted centroid:
-    ~0.01 px on rendered spheres with a few DN of noise, 0.007 px median on the simulator's
-    frames.
+    Centre (``centre``).  ``'centroid'``: the background-subtracted intensity-weighted
+    centroid of step 3 - ~0.01 px on rendered spheres with a few DN of noise, 0.007 px median
+    on the simulator's frames, and right only for a ball equally bright all over (an LED
+    behind a diffuser).  ``'shaded'``: the centroid is the start of a fit of a shaded sphere -
+    outline, Lambertian shading from any one lamp, ambient level, blur - to the unblurred
+    pixels around it (:mod:`.shaded_sphere`); its centre does not move with the light, where
+    the centroid moves towards the lit side by a fraction of the radius (0.4-0.7 px measured,
+    docs/BENCHMARKS.md *realism*), at the price of about twice the centroid's noise on an
+    evenly lit ball and ~1-2 ms per frame.  Each fit starts from the previous frame's (a
+    dwell's frames converge in two or three iterations).  A fit that fails gives no detection
+    (``last_status = 'shaded_fit_failed'``): a centroid in its place would carry the bias.
 
     Static scene (``static_scene``, on by default): a camera exposed for the cell rather than
     for the marker sees clutter, and some of it looks like the marker (indicator lamps,
@@ -96,6 +105,16 @@ class SphereDetector(Detector):
     (the first ~33 images of a camera are searched as they are) is broken.
     """
 
+    #: How the centre is measured (class docstring).
+    CENTRES = ('centroid', 'shaded')
+    #: A fit starts from the previous fit's centre offset, radius and blur when the centroid
+    #: moved less than this since (px); from its offset and shading alone otherwise.
+    WARM_START_PX = 5.0
+    #: A ball that moved more than this since the camera's previous frame is in transit
+    #: (motion-blurred; the pairing's speed bound keeps dwell frames within ~1.3 px of each
+    #: other at 15 Hz): its centre is the centroid moved by the last fit's offset, unfitted.
+    TRANSIT_PX = 2.0
+
     #: Images kept for the static scene, how often one is kept (while it is learnt, then
     #: after), and after how many intervals one is kept even if the marker has not moved.
     SCENE_FRAMES = 5
@@ -106,7 +125,7 @@ class SphereDetector(Detector):
     def __init__(self, min_radius_px=1.5, max_radius_px=40.0, blur_sigma_px=1.0, k_sigma=6.0,
                  min_contrast=0.03, min_roundness=0.7, ambiguity_ratio=0.5,
                  search_window_px=48.0, track_radius_px=3.0, white_level=None,
-                 max_candidates=32, static_scene=True):
+                 max_candidates=32, static_scene=True, centre='centroid'):
         self.min_radius_px = check_positive('min_radius_px', min_radius_px)
         self.max_radius_px = check_positive('max_radius_px', max_radius_px)
         if self.max_radius_px <= self.min_radius_px:
@@ -130,6 +149,11 @@ class SphereDetector(Detector):
         if not isinstance(static_scene, (bool, np.bool_)):
             raise ValueError(f'static_scene must be True or False, got {static_scene!r}')
         self.static_scene = bool(static_scene)
+        if centre not in self.CENTRES:
+            raise ValueError(f'centre must be one of {", ".join(self.CENTRES)}, got {centre!r}')
+        self.centre = centre
+        self._fit_start = None
+        self._prev_centroid = None
         self._scene_frames = []
         self._scene = None
         self._scene_now = None
@@ -151,6 +175,8 @@ class SphereDetector(Detector):
         """Forget the tracked position (the static scene is the camera's and is kept)."""
         self.last_uv = None
         self.last_radius = None
+        self._fit_start = None
+        self._prev_centroid = None
 
     def _keep_for_scene(self, gray, det):
         """
@@ -272,9 +298,45 @@ class SphereDetector(Detector):
         if best.touches_edge:
             return None, 'window_edge'
         uv = best.uv + (x0, y0)
+        if self.centre == 'shaded':
+            uv = self._shaded_centre(sub, best, x0, y0)
+            if uv is None:
+                return None, 'shaded_fit_failed'
         det = Detection(uv=uv, id=0, quality=float(best.roundness * max(0.0, 1.0 - second)),
                         radius_px=float(best.radius))
         return det, status
+
+    def _shaded_centre(self, sub, cand, x0, y0):
+        """Return the shaded-sphere centre (image coordinates) of ``cand``, or None."""
+        centroid = cand.uv + (x0, y0)
+        start, previous = self._fit_start, self._prev_centroid
+        self._prev_centroid = centroid
+        if start is not None and previous is not None and \
+                np.hypot(*(centroid - previous)) > self.TRANSIT_PX:
+            return centroid + start[1]
+        half = int(math.ceil(cand.radius + 3.0))
+        cu, cv = int(round(cand.uv[0])), int(round(cand.uv[1]))
+        if cu - half < 0 or cv - half < 0 or cu + half >= sub.shape[1] or \
+                cv + half >= sub.shape[0]:
+            return None
+        patch = sub[cv - half:cv + half + 1, cu - half:cu + half + 1]
+        u0, v0 = cu - half + x0, cv - half + y0
+        if start is not None and np.hypot(*(centroid - start[0])) < self.WARM_START_PX:
+            fit = fit_shaded_sphere(patch, u0, v0, centroid + start[1], start[2], start[3],
+                                    start[4])
+        else:
+            # The moments' radius holds the blur: 2 sqrt(r^2 / 4 + sigma^2) for a disc.
+            sigma0 = 0.8 if start is None else start[3]
+            radius0 = math.sqrt(max(cand.radius ** 2 - 4.0 * sigma0 ** 2,
+                                    0.25 * cand.radius ** 2))
+            offset = np.zeros(2) if start is None else start[1]
+            shading = None if start is None else start[4]
+            fit = fit_shaded_sphere(patch, u0, v0, centroid + offset, radius0, sigma0, shading)
+        if not fit.ok or np.hypot(*(fit.uv - centroid)) > max(1.0, cand.radius):
+            self._fit_start = None
+            return None
+        self._fit_start = (centroid, fit.uv - centroid, fit.radius, fit.sigma, fit.shading)
+        return fit.uv
 
     _COARSE = 4
     _COARSE_MIN_PIXELS = 160 * 120

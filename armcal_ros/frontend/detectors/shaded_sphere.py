@@ -1,0 +1,213 @@
+"""
+The centre of a ball's image from a photometric model: a shaded sphere, whatever the light.
+
+Why.  An intensity centroid is the centre's image only when the ball is equally bright all
+over.  A matte ball under a lamp is brighter towards the lamp, and the centroid moves that way
+by a fraction of the image radius - differently in every camera, since each sees the lit side
+at another angle (core/marker_light.py has the exact offset; docs/BENCHMARKS.md, *realism*,
+measures 0.4-0.7 px for a 5 mm ball at 1.5-2 m under a lamp above the cell).  Pooling a
+dwell's frames does not average it out.  The outline of the ball does not move with the
+light; a model of the whole blob - outline and shading together - separates the two.
+
+Model.  In units of the image radius r about the centre (cx, cy), a disc point (x, y) sees the
+surface normal n = (x, y, -z), z = sqrt(1 - x^2 - y^2) (camera looking along +z).  A
+Lambertian ball with ambient light has brightness
+
+    I(x, y) = p0 + max(0, p1 x + p2 y + p3 z)                                         (1)
+
+(p0 the ambient level; (p1, p2, -p3) the lamp's direction times its strength: any one distant
+lamp, from the front, the side or behind; p = 0 is a ball that glows alike from every side).
+The image is
+
+    m(u, v) = B + G_sigma * [ cov(u, v) I ]                                             (2)
+
+with cov the pixel's covered fraction (S x S sub-pixels, the outline anti-aliased over one
+sub-pixel), G_sigma a Gaussian point spread (defocus and optics), B the background.  The
+perspective makes the outline an ellipse whose centre is off the centre's projection by
+f a^2 tan t / cos^2 t (a the ball's angular radius, t its field angle): under 0.005 px for a
+ball of a few pixels (sim/render.py), so the circle of (2) is the centre's image.
+
+Fit.  Levenberg-Marquardt on all nine parameters (cx, cy, r, sigma, B, p0..p3), Marquardt's
+diagonal scaling.  The model is linear in B, p0 and - on a fixed lit side - in p1..p3, so
+those Jacobian columns are the basis images themselves (d max(0, p . n) / dp = n where lit);
+the four geometric columns are forward differences.  The blur and the pixel integration are a
+pair of small matrices (rows and columns), so a model image is two matrix products.  Written
+here rather than with scipy.optimize.least_squares (the same minimum, 30 ms a fit) because the
+exact linear columns and the warm start from the previous frame (two or three iterations in a
+dwell) make it cheap enough for every still frame.
+"""
+
+from dataclasses import dataclass
+import math
+
+import numpy as np
+
+#: Sub-pixels per pixel and axis: the outline is anti-aliased over one sub-pixel, so the model
+#: image is smooth in the centre and radius and 4 x 4 is within 0.002 px of 8 x 8 on the
+#: simulator's balls.
+SUPERSAMPLE = 3
+
+
+#: Bounds on the point spread (px): below 0.3 the pixel integration dominates anyway.
+SIGMA_MIN, SIGMA_MAX = 0.3, 6.0
+
+
+@dataclass(frozen=True)
+class ShadedFit:
+    """
+    The fitted ball: ``uv`` (2,) centre, ``radius`` and ``sigma`` (px), ``shading`` (p0..p3
+    of the module's (1), image units), ``background``, ``rms`` of the residual (image units),
+    ``iterations``, ``status`` ('ok' or why the fit is not to be used) and ``message``.
+    """
+
+    uv: np.ndarray
+    radius: float
+    sigma: float
+    shading: np.ndarray
+    background: float
+    rms: float
+    iterations: int
+    status: str
+    message: str = ''
+
+    @property
+    def ok(self):
+        """True when the fit converged inside its bounds."""
+        return self.status == 'ok'
+
+
+def _blur_matrix(d, sigma):
+    """Blur matrix over pixel offsets ``d`` (n, n): a Gaussian truncated at 4 sigma, normalised."""
+    half = math.ceil(4.0 * sigma)
+    k = np.exp((-0.5 / (sigma * sigma)) * d * d)
+    k[np.abs(d) > half] = 0.0
+    norm = 1.0 + 2.0 * sum(math.exp(-0.5 * (j / sigma) ** 2) for j in range(1, half + 1))
+    return k / norm
+
+
+class _Model:
+    """The model images of one patch: the bases of (2) for a geometry, and the linear solve."""
+
+    def __init__(self, patch, u0, v0):
+        self.y = patch.astype(float).ravel()
+        self.h, self.w = patch.shape
+        S = SUPERSAMPLE
+        a = (np.arange(S) + 0.5) / S - 0.5
+        self.us = ((u0 + np.arange(self.w))[:, None] + a[None, :]).ravel()
+        self.vs = ((v0 + np.arange(self.h))[:, None] + a[None, :]).ravel()
+        # Pixel integration as a matrix: row i averages the S sub-pixels of pixel i.
+        self._pool_y = np.kron(np.eye(self.h), np.full((1, S), 1.0 / S))
+        self._pool_x = np.kron(np.eye(self.w), np.full((1, S), 1.0 / S))
+        self._ones = np.ones(self.h * self.w)
+        self._dy = (np.arange(self.h)[:, None] - np.arange(self.h)[None, :]).astype(float)
+        self._dx = (np.arange(self.w)[:, None] - np.arange(self.w)[None, :]).astype(float)
+        self._sigma = None
+
+    def _operators(self, sigma):
+        """Return (Ly, Lx): pixel integration then blur, along rows and columns."""
+        if sigma != self._sigma:
+            self._ly = _blur_matrix(self._dy, sigma) @ self._pool_y
+            self._lxt = (_blur_matrix(self._dx, sigma) @ self._pool_x).T
+            self._sigma = sigma
+        return self._ly, self._lxt
+
+    def bases(self, g, p):
+        """Return the (N, 5) basis images for geometry ``g`` and lit side from shading ``p``."""
+        cx, cy, r, sigma = g
+        dx = (self.us - cx) / r
+        dy = (self.vs - cy) / r
+        rho2 = dy[:, None] ** 2 + dx[None, :] ** 2
+        rho = np.sqrt(rho2)
+        cov = np.clip((1.0 - rho) * (r * SUPERSAMPLE) + 0.5, 0.0, 1.0)
+        z = np.sqrt(np.maximum(1.0 - rho2, 0.0))
+        lit = cov if p is None else cov * (p[0] * dx[None, :] + p[1] * dy[:, None]
+                                           + p[2] * z > 0)
+        ly, lxt = self._operators(sigma)
+        A = np.empty((self.h * self.w, 5))
+        A[:, 0] = self._ones
+        A[:, 1] = (ly @ cov @ lxt).ravel()
+        A[:, 2] = (ly @ (lit * dx[None, :]) @ lxt).ravel()
+        A[:, 3] = (ly @ (lit * dy[:, None]) @ lxt).ravel()
+        A[:, 4] = (ly @ (lit * z) @ lxt).ravel()
+        return A
+
+    def image(self, theta):
+        """Return the model image (N,) and its bases (N, 5) at ``theta`` (fit's order)."""
+        A = self.bases(theta[:4], theta[6:])
+        return A @ theta[4:], A
+
+
+def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
+                      max_iterations=30, tolerance=3e-3):
+    """
+    Fit the shaded-sphere model (module doc) to ``patch`` and return a :class:`ShadedFit`.
+
+    ``patch`` (h, w) background-level image around the ball, its top-left pixel at (u0, v0)
+    (OpenCV convention: integer coordinates are pixel centres); ``uv0`` (2,), ``radius0`` and
+    ``sigma0`` the start, ``shading0`` (p0..p3) too (default: a ball lit from the camera's
+    side).  Converged when a step moves the centre and radius by less than
+    ``tolerance`` px.
+    """
+    patch = np.asarray(patch)
+    if patch.ndim != 2 or min(patch.shape) < 5:
+        raise ValueError(f'patch must be a 2-D array of at least 5 x 5, got shape {patch.shape}')
+    uv0 = np.asarray(uv0, float).reshape(2)
+    if not (radius0 > 0 and sigma0 > 0):
+        raise ValueError(f'radius0 and sigma0 must be > 0, got {radius0}, {sigma0}')
+    model = _Model(patch, u0, v0)
+    y = model.y
+    level = float(np.median(np.concatenate([patch[0], patch[-1], patch[:, 0], patch[:, -1]])))
+    top = float(patch.max()) - level
+    if shading0 is None:
+        shading0 = (0.6 * top, 0.0, 0.0, 0.3 * top)     # a ball lit from the camera's side
+    theta = np.r_[uv0, float(radius0), min(max(sigma0, SIGMA_MIN), SIGMA_MAX), level,
+                  np.asarray(shading0, float).reshape(4)]
+    m, A = model.image(theta)
+    res = y - m
+    cost = res @ res
+    # A warm start (the previous frame's ball) is usually within the quadratic region.
+    lam = 1e-3 if shading0 is None else 1e-6
+    h = 1e-3
+    it = 0
+    converged = False
+    J = np.empty((y.size, 9))
+    for it in range(1, max_iterations + 1):
+        # Geometry by forward differences, the linear parameters exactly: their columns are
+        # the bases themselves (d max(0, p.n) / dp = n on the lit side).
+        for k in range(4):
+            tk = theta.copy()
+            tk[k] += h
+            J[:, k] = (model.image(tk)[0] - m) / h
+        J[:, 4:] = A
+        JtJ, Jtr = J.T @ J, J.T @ res
+        d = np.diag(JtJ).copy() + 1e-12
+        improved = False
+        while lam < 1e10:
+            delta = np.linalg.solve(JtJ + lam * np.diag(d), Jtr)
+            trial = theta + delta
+            trial[2] = max(trial[2], 0.5)
+            trial[3] = min(max(trial[3], SIGMA_MIN), SIGMA_MAX)
+            m_t, A_t = model.image(trial)
+            res_t = y - m_t
+            cost_t = res_t @ res_t
+            if cost_t < cost:
+                theta, m, A, res, cost = trial, m_t, A_t, res_t, cost_t
+                lam = max(lam / 10.0, 1e-9)
+                improved = True
+                break
+            lam *= 10.0
+        if not improved or np.max(np.abs(delta[:3])) < tolerance:
+            converged = True
+            break
+    g, coef = theta[:4], theta[4:]
+    rms = math.sqrt(cost / res.size)
+    status, message = 'ok', ''
+    if not converged:
+        status, message = 'not_converged', f'no convergence in {max_iterations} iterations'
+    elif coef[1] + max(0.0, coef[4]) <= 0:
+        status, message = 'no_ball', 'the fitted ball is not brighter than its background'
+    elif not 0.5 < g[2] < 2.0 * radius0 + 2.0:
+        status, message = 'radius', f'fitted radius {g[2]:.2f} px out of range'
+    return ShadedFit(uv=g[:2].copy(), radius=float(g[2]), sigma=float(g[3]),
+                     shading=coef[1:].copy(), background=float(coef[0]), rms=rms,
+                     iterations=it, status=status, message=message)
