@@ -137,6 +137,15 @@ class _Model:
         return A @ theta[4:], A
 
 
+#: Directions of light the cold starts try, as (p1, p2, p3) of the module's (1) (x right, y
+#: down, z towards the camera): from the camera's side, from each side, and from behind.  A
+#: ball lit from behind shows a bright rim on a dark disc, which a start lit from the front
+#: may explain as a shifted, smaller ball (a local minimum measured on the simulator's
+#: back-lit frames: 0.5-0.9 px off).
+COLD_STARTS = ((0.0, 0.0, 1.0), (1.0, 0.0, 0.3), (-1.0, 0.0, 0.3), (0.0, 1.0, 0.3),
+               (0.0, -1.0, 0.3), (0.0, 0.0, -1.0))
+
+
 def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
                       max_iterations=30, tolerance=3e-3):
     """
@@ -144,8 +153,9 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
 
     ``patch`` (h, w) background-level image around the ball, its top-left pixel at (u0, v0)
     (OpenCV convention: integer coordinates are pixel centres); ``uv0`` (2,), ``radius0`` and
-    ``sigma0`` the start, ``shading0`` (p0..p3) too (default: a ball lit from the camera's
-    side).  Converged when a step moves the centre and radius by less than
+    ``sigma0`` the start.  ``shading0`` (p0..p3) is a warm start (the previous frame's); without
+    it each of :data:`COLD_STARTS` is tried and the best fit kept.  The radius is bounded to
+    [radius0 / 2, 2 radius0].  Converged when a step moves the centre and radius by less than
     ``tolerance`` px.
     """
     patch = np.asarray(patch)
@@ -155,18 +165,42 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
     if not (radius0 > 0 and sigma0 > 0):
         raise ValueError(f'radius0 and sigma0 must be > 0, got {radius0}, {sigma0}')
     model = _Model(patch, u0, v0)
-    y = model.y
     level = float(np.median(np.concatenate([patch[0], patch[-1], patch[:, 0], patch[:, -1]])))
     top = float(patch.max()) - level
-    if shading0 is None:
-        shading0 = (0.6 * top, 0.0, 0.0, 0.3 * top)     # a ball lit from the camera's side
-    theta = np.r_[uv0, float(radius0), min(max(sigma0, SIGMA_MIN), SIGMA_MAX), level,
-                  np.asarray(shading0, float).reshape(4)]
+    geometry = [uv0[0], uv0[1], float(radius0), min(max(sigma0, SIGMA_MIN), SIGMA_MAX), level]
+    if shading0 is not None:
+        # A warm start is usually within the quadratic region: a small damping to begin with.
+        best = _levenberg_marquardt(model, np.r_[geometry, np.asarray(shading0, float)],
+                                    radius0, 1e-6, max_iterations, tolerance)
+    else:
+        best = None
+        for light in COLD_STARTS:
+            start = np.r_[geometry, 0.4 * top, 0.6 * top * np.asarray(light)]
+            got = _levenberg_marquardt(model, start, radius0, 1e-3, max_iterations, tolerance)
+            if best is None or got[1] < best[1]:
+                best = got
+    theta, cost, it, converged = best
+    g, coef = theta[:4], theta[4:]
+    rms = math.sqrt(cost / model.y.size)
+    status, message = 'ok', ''
+    if not converged:
+        status, message = 'not_converged', f'no convergence in {max_iterations} iterations'
+    elif coef[1] + np.linalg.norm(coef[2:]) <= 0:
+        status, message = 'no_ball', 'the fitted ball is not brighter than its background'
+    elif not 0.5 * radius0 < g[2] < 2.0 * radius0:
+        status, message = 'radius', (f'fitted radius {g[2]:.2f} px at a bound (start '
+                                     f'{radius0:.2f})')
+    return ShadedFit(uv=g[:2].copy(), radius=float(g[2]), sigma=float(g[3]),
+                     shading=coef[1:].copy(), background=float(coef[0]), rms=rms,
+                     iterations=it, status=status, message=message)
+
+
+def _levenberg_marquardt(model, theta, radius0, lam, max_iterations, tolerance):
+    """Return (theta, cost, iterations, converged) from ``theta`` (module doc, Fit)."""
+    y = model.y
     m, A = model.image(theta)
     res = y - m
     cost = res @ res
-    # A warm start (the previous frame's ball) is usually within the quadratic region.
-    lam = 1e-3 if shading0 is None else 1e-6
     h = 1e-3
     it = 0
     converged = False
@@ -185,8 +219,12 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
         while lam < 1e10:
             delta = np.linalg.solve(JtJ + lam * np.diag(d), Jtr)
             trial = theta + delta
-            trial[2] = max(trial[2], 0.5)
+            # Bounds: a radius within a factor of two of the start (the blob's own size), a
+            # plausible blur, and no negative ambient light (which would let a dark ball with
+            # a bright rim pose as a shifted one).
+            trial[2] = min(max(trial[2], 0.5 * radius0, 0.5), 2.0 * radius0)
             trial[3] = min(max(trial[3], SIGMA_MIN), SIGMA_MAX)
+            trial[5] = max(trial[5], 0.0)
             m_t, A_t = model.image(trial)
             res_t = y - m_t
             cost_t = res_t @ res_t
@@ -199,15 +237,4 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
         if not improved or np.max(np.abs(delta[:3])) < tolerance:
             converged = True
             break
-    g, coef = theta[:4], theta[4:]
-    rms = math.sqrt(cost / res.size)
-    status, message = 'ok', ''
-    if not converged:
-        status, message = 'not_converged', f'no convergence in {max_iterations} iterations'
-    elif coef[1] + max(0.0, coef[4]) <= 0:
-        status, message = 'no_ball', 'the fitted ball is not brighter than its background'
-    elif not 0.5 < g[2] < 2.0 * radius0 + 2.0:
-        status, message = 'radius', f'fitted radius {g[2]:.2f} px out of range'
-    return ShadedFit(uv=g[:2].copy(), radius=float(g[2]), sigma=float(g[3]),
-                     shading=coef[1:].copy(), background=float(coef[0]), rms=rms,
-                     iterations=it, status=status, message=message)
+    return theta, cost, it, converged
