@@ -32,6 +32,7 @@ import yaml  # noqa: E402
 from armcal_ros.cli import main as armcal  # noqa: E402
 from armcal_ros.compare import compare  # noqa: E402
 from armcal_ros.io.calib_files import read_cameras  # noqa: E402
+from armcal_ros.params import defaults  # noqa: E402
 
 from armcal_ros.frontend.detectors import make_detector  # noqa: E402
 from armcal_ros.sim.cell import simulate_cell  # noqa: E402
@@ -48,6 +49,7 @@ PIPELINE_RUNS = (('uniform', 'uniform', False, 'centroid'),
                  ('lamp, shaded fit', 'lamp', False, 'shaded'))
 LAMP_HEIGHT = 1.5          # m above the workspace centre
 AMBIENT = 0.25
+MAX_MARKER_SPEED = defaults()['max_marker_speed']      # m/s, the front end's stillness bound
 
 
 def lamp_of(settings):
@@ -70,7 +72,11 @@ def detect_session(args):
                           for cam in sim.cameras} for centre in CENTRES}
     out = {centre: {cam.name: dict(errors=[], visible=0) for cam in sim.cameras}
            for centre in CENTRES}
-    for i in range(len(f)):
+    # Only still frames, as the front end detects them: the marker's speed over the exposure
+    # below the front end's default bound (max_marker_speed).
+    speed = np.linalg.norm(f.exposure_markers[:, -1] - f.exposure_markers[:, 0], axis=1) \
+        / sensor.exposure
+    for i in np.flatnonzero(speed < MAX_MARKER_SPEED):
         cam = sim.cameras[int(f.camera[i])].name
         image = sim.render(i, 'mono8', sensor=sensor)
         for centre in CENTRES:
@@ -198,18 +204,19 @@ def main(argv=None):
                              f'{np.max(shifts):.3f}', f'{np.median(errs):.3f}',
                              f'{np.percentile(errs, 99):.3f}', f'{100.0 * hit / vis:.2f}'])
     md = ['## Realistic markers: the detector under one-sided light (bench/realism.py)', '',
-          f'{args.seeds} seeds x {args.duration:.0f} s per cell, every visible frame rendered '
+          f'{args.seeds} seeds x {args.duration:.0f} s per cell, every still frame (marker '
+          f'slower than max_marker_speed = {MAX_MARKER_SPEED} m/s over the exposure: what '
+          'the front end detects) rendered '
           'twice: a sphere glowing alike from every side (uniform), and a matte ball lit by '
           f'one lamp {LAMP_HEIGHT} m above the workspace centre with {AMBIENT:.0%} ambient '
           '(lamp); the sphere detector in frame order, with each centre (`sphere_centre`): '
           'the background-subtracted intensity centroid, and the fit of a shaded ball '
-          '(frontend/detectors/shaded_sphere.py; frames in transit, moved over 2 px since the '
-          'last, get the centroid plus the last fit\'s offset). Mean shift: the length of '
+          '(frontend/detectors/shaded_sphere.py). Mean shift: the length of '
           'the mean error vector per camera and seed (median and worst over the seeds) - the '
           'bias that pooling a dwell\'s frames does not remove; error: |detected - true '
-          'projection| over every frame; recall: detections within 3 px of the truth over '
-          'visible frames. Target (all effects together): bias under 0.05 px per camera. '
-          f'Measured on {machine()}.', '',
+          'projection| over every still frame; recall: detections within 3 px of the truth '
+          'over visible still frames. Target (all effects together): bias under 0.05 px per '
+          f'camera. Measured on {machine()}.', '',
           table(['cell', 'lighting', 'centre', 'camera', 'mean shift px (median)',
                  'mean shift px (worst)', 'median error px', '99th pct px', 'recall %'], rows), '',
           f'Through the whole pipeline ({args.pipeline_seeds} seeds x '

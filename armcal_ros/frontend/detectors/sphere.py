@@ -82,7 +82,8 @@ class SphereDetector(Detector):
     pixels around it (:mod:`.shaded_sphere`); its centre does not move with the light, where
     the centroid moves towards the lit side by a fraction of the radius (0.4-0.7 px measured,
     docs/BENCHMARKS.md *realism*), at the price of about twice the centroid's noise on an
-    evenly lit ball and ~1-2 ms per frame.  Each fit starts from the previous frame's (a
+    evenly lit ball and ~1-2 ms per frame (the front end detects only still frames: a
+    motion-blurred ball is not the model).  Each fit starts from the previous frame's (a
     dwell's frames converge in two or three iterations).  A fit that fails gives no detection
     (``last_status = 'shaded_fit_failed'``): a centroid in its place would carry the bias.
 
@@ -107,13 +108,10 @@ class SphereDetector(Detector):
 
     #: How the centre is measured (class docstring).
     CENTRES = ('centroid', 'shaded')
-    #: A fit starts from the previous fit's centre offset, radius and blur when the centroid
-    #: moved less than this since (px); from its offset and shading alone otherwise.
+    #: A fit starts from the previous fit (its centre offset, shading and blur; its radius
+    #: too when the centroid moved less than this, px); from several lights when there is none
+    #: or that start fails.
     WARM_START_PX = 5.0
-    #: A ball that moved more than this since the camera's previous frame is in transit
-    #: (motion-blurred; the pairing's speed bound keeps dwell frames within ~1.3 px of each
-    #: other at 15 Hz): its centre is the centroid moved by the last fit's offset, unfitted.
-    TRANSIT_PX = 2.0
 
     #: Images kept for the static scene, how often one is kept (while it is learnt, then
     #: after), and after how many intervals one is kept even if the marker has not moved.
@@ -153,7 +151,6 @@ class SphereDetector(Detector):
             raise ValueError(f'centre must be one of {", ".join(self.CENTRES)}, got {centre!r}')
         self.centre = centre
         self._fit_start = None
-        self._prev_centroid = None
         self._scene_frames = []
         self._scene = None
         self._scene_now = None
@@ -176,7 +173,6 @@ class SphereDetector(Detector):
         self.last_uv = None
         self.last_radius = None
         self._fit_start = None
-        self._prev_centroid = None
 
     def _keep_for_scene(self, gray, det):
         """
@@ -309,11 +305,6 @@ class SphereDetector(Detector):
     def _shaded_centre(self, sub, cand, x0, y0):
         """Return the shaded-sphere centre (image coordinates) of ``cand``, or None."""
         centroid = cand.uv + (x0, y0)
-        start, previous = self._fit_start, self._prev_centroid
-        self._prev_centroid = centroid
-        if start is not None and previous is not None and \
-                np.hypot(*(centroid - previous)) > self.TRANSIT_PX:
-            return centroid + start[1]
         half = int(math.ceil(cand.radius + 3.0))
         cu, cv = int(round(cand.uv[0])), int(round(cand.uv[1]))
         if cu - half < 0 or cv - half < 0 or cu + half >= sub.shape[1] or \
@@ -321,17 +312,17 @@ class SphereDetector(Detector):
             return None
         patch = sub[cv - half:cv + half + 1, cu - half:cu + half + 1]
         u0, v0 = cu - half + x0, cv - half + y0
-        if start is not None and np.hypot(*(centroid - start[0])) < self.WARM_START_PX:
-            fit = fit_shaded_sphere(patch, u0, v0, centroid + start[1], start[2], start[3],
-                                    start[4])
-        else:
-            # The moments' radius holds the blur: 2 sqrt(r^2 / 4 + sigma^2) for a disc.
-            sigma0 = 0.8 if start is None else start[3]
-            radius0 = math.sqrt(max(cand.radius ** 2 - 4.0 * sigma0 ** 2,
-                                    0.25 * cand.radius ** 2))
-            offset = np.zeros(2) if start is None else start[1]
-            shading = None if start is None else start[4]
-            fit = fit_shaded_sphere(patch, u0, v0, centroid + offset, radius0, sigma0, shading)
+        # The moments' radius holds the blur: 2 sqrt(r^2 / 4 + sigma^2) for a disc.
+        start = self._fit_start
+        sigma0 = 0.8 if start is None else start[3]
+        radius0 = math.sqrt(max(cand.radius ** 2 - 4.0 * sigma0 ** 2, 0.25 * cand.radius ** 2))
+        fit = None
+        if start is not None:
+            near = np.hypot(*(centroid - start[0])) < self.WARM_START_PX
+            fit = fit_shaded_sphere(patch, u0, v0, centroid + start[1],
+                                    start[2] if near else radius0, sigma0, start[4])
+        if fit is None or not fit.ok:
+            fit = fit_shaded_sphere(patch, u0, v0, centroid, radius0, sigma0)
         if not fit.ok or np.hypot(*(fit.uv - centroid)) > max(1.0, cand.radius):
             self._fit_start = None
             return None
