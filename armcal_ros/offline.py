@@ -25,6 +25,8 @@ import time
 from dataclasses import asdict, dataclass, field
 from typing import Callable, Dict, Iterator, List, Optional
 
+import numpy as np
+
 from armcal_ros.change_tracking import ChangeTracker
 from armcal_ros.compose import build_engine, build_pipeline
 from armcal_ros.core.target import pose_vector
@@ -42,6 +44,7 @@ from armcal_ros.io.rct_import import is_rct_folder, load_rct_folder, RctFormatEr
 from armcal_ros.io.results_files import write_calibration
 from armcal_ros.robot.kinematics import KinematicChain
 from armcal_ros.settings import load_settings, Settings, with_given_intrinsics
+from armcal_ros.stamp_latency import latency_report, measure_latencies
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 POSE_TYPES = ('geometry_msgs/msg/PoseStamped', 'geometry_msgs/msg/TransformStamped')
@@ -346,8 +349,14 @@ def collect_samples(source, settings: Settings, progress: Callable[[int, int], N
                     collector.seen_joint_names, lost=lost)
 
 
-def solve_and_write(front: FrontEnd, settings: Settings, output_dir) -> OfflineResult:
-    """Solve the collected samples with ``settings``' noise model and write the files."""
+def solve_and_write(front: FrontEnd, settings: Settings, output_dir,
+                    recording: Optional[Recording] = None) -> OfflineResult:
+    """
+    Solve the collected samples with ``settings``' noise model and write the files.
+
+    With the ``recording`` the samples came from, each camera's stamp latency is measured on
+    its frames in motion (:mod:`armcal_ros.stamp_latency`) and reported.
+    """
     if len(front.store) < settings.schedule.min_samples:
         why = why_few_samples(front.counts, front.missing_joints, front.seen_joint_names)
         raise CalibrateError(f'only {len(front.store)} samples (min_samples '
@@ -372,6 +381,15 @@ def solve_and_write(front: FrontEnd, settings: Settings, output_dir) -> OfflineR
                               total_s=front.time_s + outcome.time_s, messages=front.messages))
     if not outcome.accepted:
         raise CalibrateError(f'calibration failed: {outcome.reason}')
+    point_marker = settings.target.marker_type in ('sphere', 'aruco')
+    if recording is not None and front.chain is not None and point_marker and \
+            not settings.target.eye_in_hand:
+        t0 = time.perf_counter()
+        T = engine.T_link_target
+        offset = settings.robot.marker_offset if T is None else np.asarray(T)[:3, 3]
+        report['stamp_latency'] = latency_report(measure_latencies(
+            recording, settings, front.chain, offset, outcome.calibration))
+        report['timings']['latency_s'] = time.perf_counter() - t0
     if not isinstance(output_dir, OutputDirectory):
         with _output_directory(output_dir) as out:
             return _write(engine, outcome, report, front, out)
@@ -398,16 +416,21 @@ def _output_directory(path) -> OutputDirectory:
 
 def calibrate_bag(source, settings: Settings, output_dir,
                   progress: Callable[[int, int], None] = None,
-                  log: Callable[[str], None] = None) -> OfflineResult:
+                  log: Callable[[str], None] = None, latency: bool = True) -> OfflineResult:
     """
     Run the pipeline on a bag or robot_cal_tools folder; write to ``output_dir``.
 
     The directory is checked and locked before the recording is read (a run that cannot write
     its results fails at once), and the run's files replace the previous run's as a set
-    (:mod:`armcal_ros.io.output_dir`).
+    (:mod:`armcal_ros.io.output_dir`).  With ``latency`` (a bag, a point marker) each camera's
+    stamp latency is measured in a second pass over the bag and reported.
     """
     with _output_directory(output_dir) as out:
-        return solve_and_write(collect_samples(source, settings, progress, log), settings, out)
+        front = collect_samples(source, settings, progress, log)
+        recording = None
+        if latency and not is_rct_folder(source):
+            recording = open_bag(source, settings)
+        return solve_and_write(front, settings, out, recording)
 
 
 def make_report(settings: Settings, engine, outcome, front: FrontEnd, timings):
@@ -509,8 +532,13 @@ def format_table(report):
     for name in changes.get('withheld', []):
         lines.append(f'{name:<10} withheld: it changed and has too few new views to be '
                      'recalibrated (recalibration_samples)')
+    for name, e in (report.get('stamp_latency') or {}).items():
+        lines.append(f'{name:<10} stamp latency ' + (
+            f'{e["latency_ms"]:.1f} ms +/- {e["std_ms"]:.1f} ({e["frames"]} frames in motion)'
+            if e['status'] == 'ok' else f'not measured: {e["message"]}'))
     t = report['timings']
-    lines.append(f'front end {t["front_end_s"]:.1f} s, solve {t["solve_s"]:.1f} s')
+    lines.append(f'front end {t["front_end_s"]:.1f} s, solve {t["solve_s"]:.1f} s'
+                 + (f', latency {t["latency_s"]:.1f} s' if 'latency_s' in t else ''))
     return '\n'.join(lines)
 
 
@@ -524,6 +552,9 @@ def add_arguments(p):
     p.add_argument('--output', required=True, metavar='DIR', help='where to write the files')
     p.add_argument('--noise-model', default=None,
                    help='override the parameter file\'s noise_model')
+    p.add_argument('--no-latency', action='store_true',
+                   help='do not measure each camera\'s stamp latency (a second pass over the bag '
+                        'timing the frames in motion; point markers)')
     p.add_argument('--quiet', action='store_true',
                    help='print nothing but errors and lost or skipped input (the results are '
                         'in DIR: report.json)')
@@ -559,7 +590,8 @@ def run(args):
         if not args.quiet or _is_loss(message):
             print(('\n' if live else '') + f'[armcal] {message}', file=sys.stderr)
 
-    res = calibrate_bag(args.bag, settings, args.output, progress, log)
+    res = calibrate_bag(args.bag, settings, args.output, progress, log,
+                        latency=not args.no_latency)
     if live:
         print('', file=sys.stderr)
     if args.quiet:

@@ -68,7 +68,8 @@ def _check_against_truth(out_dir, gt_dir, names=('cam1', 'cam2', 'cam3')):
 def test_cli_calibrates_each_noise_model_close_to_truth(sim_bag, tmp_path, model):
     bag, params = sim_bag
     out = tmp_path / 'out'
-    quiet = ['--quiet'] if model != 'auto' else []
+    # The stamp-latency pass runs with auto (the default use); the other runs skip it.
+    quiet = ['--quiet', '--no-latency'] if model != 'auto' else []
     proc = subprocess.run([sys.executable, '-m', 'armcal_ros.cli', 'calibrate', str(bag),
                            '--params', str(params), '--output', str(out), '--noise-model',
                            model] + quiet, capture_output=True, text=True, timeout=300)
@@ -82,6 +83,13 @@ def test_cli_calibrates_each_noise_model_close_to_truth(sim_bag, tmp_path, model
         assert '\r' not in proc.stderr
     report = json.loads((out / 'report.json').read_text())
     assert report['noise_model'] == model and report['accepted']
+    if quiet:
+        assert 'stamp_latency' not in report and 'latency_s' not in report['timings']
+    else:
+        # The simulator stamps on time (2 ms of jitter): each camera timed near zero.
+        assert 'stamp latency' in proc.stdout
+        for name, e in report['stamp_latency'].items():
+            assert e['status'] == 'ok' and abs(e['latency_ms']) < 3.0, (name, e)
     for c in report['cameras'].values():
         assert c['rms_px'] < 1.0 and c['n_inliers'] >= 0.9 * c['n_observations']
         assert c['std']['fx'] > 0

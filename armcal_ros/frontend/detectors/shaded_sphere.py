@@ -55,7 +55,9 @@ SIGMA_MIN, SIGMA_MAX = 0.3, 6.0
 @dataclass(frozen=True)
 class ShadedFit:
     """
-    The fitted ball: ``uv`` (2,) centre, ``radius`` and ``sigma`` (px), ``shading`` (p0..p3
+    The fitted ball.
+
+    ``uv`` (2,) centre, ``radius`` and ``sigma`` (px), ``shading`` (p0..p3
     of the module's (1), image units), ``background``, ``rms`` of the residual (image units),
     ``iterations``, ``status`` ('ok' or why the fit is not to be used) and ``message``.
     """
@@ -72,7 +74,7 @@ class ShadedFit:
 
     @property
     def ok(self):
-        """True when the fit converged inside its bounds."""
+        """Return True when the fit converged inside its bounds."""
         return self.status == 'ok'
 
 
@@ -132,7 +134,7 @@ class _Model:
         return A
 
     def image(self, theta):
-        """Return the model image (N,) and its bases (N, 5) at ``theta`` (fit's order)."""
+        """Return the model image (N,) and its bases (N, 5) at the parameter vector."""
         A = self.bases(theta[:4], theta[6:])
         return A @ theta[4:], A
 

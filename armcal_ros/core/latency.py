@@ -1,0 +1,142 @@
+"""
+A camera's stamp latency from the marker's motion: how late its image stamps are.
+
+Why.  The front end pairs each still frame with the joint angles at its stamp.  A camera whose
+stamps are late by d (exposure at t - d, stamped t) pairs a frame with angles the arm had d
+later; at rest that costs nothing, but a dwell's first and last frames, and the whole dwell of
+an arm that settles, are paired with the wrong place.  The motion between dwells measures d:
+the marker's image at stamp t is where the calibrated camera sees the arm's point at t - d.
+
+Model.  For the frames m of one camera in motion, with detections x_m at stamps t_m and the
+calibration's prediction p(t) (forward kinematics of the joint angles interpolated at t,
+projected),
+
+    x_m = p(t_m - d) + b + e_m,                                                          (1)
+
+b a constant image offset (what a marker's lighting or a small calibration error leaves;
+profiled out as the mean residual) and e_m the detection noise.  d minimises the residual sum
+of squares of (1); a grid over ``bounds`` (every ``grid_s``) finds its basin, and Gauss-Newton
+refines it with the image velocity v_m = dp/dt: the step is sum v.r / sum |v|^2 (d r / d d
+= v).  Residuals beyond ``outlier_px`` of the median residual are left out (a detection of
+something else).  Standard deviation: s / sqrt(sum |v_m - v_mean|^2), s the residual RMS -
+the information is the motion, and frames at rest carry none.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class LatencyEstimate:
+    """
+    One camera's delay.
+
+    ``latency_s`` (stamp minus exposure; NaN if not estimated), ``std_s``, ``frames`` used,
+    ``rms_px`` of (1) at the estimate, ``status`` ('ok', 'too_little_motion', 'at_bound',
+    'too_few_frames', 'no_fit') and ``message``.
+    """
+
+    latency_s: float
+    std_s: float
+    frames: int
+    rms_px: float
+    status: str
+    message: str = ''
+
+    @property
+    def ok(self):
+        """Return True when the latency was estimated (within its bounds, from enough motion)."""
+        return self.status == 'ok'
+
+
+def estimate_latency(stamps_s, uv, predict, bounds=(-0.1, 0.25), grid_s=0.002,
+                     outlier_px=3.0, min_frames=10, max_std_s=0.005, iterations=5):
+    """
+    Return the :class:`LatencyEstimate` of (1) in the module doc.
+
+    ``stamps_s`` (M,) frame stamps (s), ``uv`` (M, 2) detections; ``predict(times_s)`` returns
+    (M, 2) predicted image points at ``times_s`` (M,) (NaN where unknown, e.g. outside the
+    joint record).  ``bounds`` (s) is the range searched; the estimate is refused when its
+    standard deviation exceeds ``max_std_s`` (too little motion) or it lies on a bound.
+    """
+    t = np.asarray(stamps_s, float).reshape(-1)
+    uv = np.asarray(uv, float)
+    if uv.shape != (t.size, 2):
+        raise ValueError(f'uv must have shape ({t.size}, 2) to match stamps_s, got {uv.shape}')
+    lo, hi = (float(b) for b in bounds)
+    if not lo < hi:
+        raise ValueError(f'bounds must be (low, high) with low < high, got {bounds}')
+    if not grid_s > 0:
+        raise ValueError(f'grid_s must be > 0, got {grid_s}')
+    nan = float('nan')
+    if t.size < min_frames:
+        return LatencyEstimate(nan, nan, int(t.size), nan, 'too_few_frames',
+                               f'{t.size} frames in motion (at least {min_frames} needed)')
+
+    def residuals(d):
+        """Return (residuals of the frames kept, their mask); (None, None) without a fit."""
+        r = uv - predict(t - d)
+        good = np.all(np.isfinite(r), axis=1)
+        if good.sum() < min_frames:
+            return None, None
+        r = r[good] - np.median(r[good], axis=0)
+        keep = np.hypot(r[:, 0], r[:, 1]) <= outlier_px
+        if keep.sum() < min_frames:
+            return None, None
+        mask = np.zeros(t.size, bool)
+        mask[np.flatnonzero(good)[keep]] = True
+        return r[keep] - r[keep].mean(axis=0), mask
+
+    def cost(d):
+        r, _ = residuals(d)
+        if r is None:
+            return np.inf
+        # Frames left out count at the outlier bound, so a delay cannot win by losing frames.
+        return float((r * r).sum() + (t.size - len(r)) * outlier_px ** 2)
+
+    grid = np.arange(lo, hi + 0.5 * grid_s, grid_s)
+    costs = np.array([cost(d) for d in grid])
+    if not np.any(np.isfinite(costs)):
+        return LatencyEstimate(nan, nan, 0, nan, 'no_fit',
+                               f'no delay from {1e3 * lo:.0f} to {1e3 * hi:.0f} ms brings '
+                               f'{min_frames} frames within {outlier_px} px of the prediction')
+    k = int(np.argmin(costs))
+    d = float(grid[k])
+    h = 1e-3
+    for _ in range(iterations):
+        r, mask = residuals(d)
+        if r is None:
+            break
+        pd = predict(t[mask] - d)
+        v = (pd - predict(t[mask] - d - h)) / h            # dp/dt at t - d
+        v = v - v.mean(axis=0)                              # b absorbs a constant part
+        vv = float((v * v).sum())
+        if vv <= 0:
+            break
+        # r(d) = x - p(t - d) - b: d r / d d = +v, so the Gauss-Newton step is -sum v.r / |v|^2.
+        step = -float((v * r).sum()) / vv
+        d = min(max(d + step, lo), hi)
+        if abs(step) < 1e-6:
+            break
+    r, mask = residuals(d)
+    if r is None:
+        return LatencyEstimate(nan, nan, 0, nan, 'too_few_frames',
+                               'too few frames with a prediction near the estimate')
+    pd = predict(t[mask] - d)
+    v = (pd - predict(t[mask] - d - h)) / h
+    v = v - v.mean(axis=0)
+    dof = max(2 * len(r) - 3, 1)
+    rms = float(np.sqrt((r * r).sum() / dof))
+    std = rms / np.sqrt(max(float((v * v).sum()), 1e-300))
+    n = int(mask.sum())
+    if std > max_std_s:
+        return LatencyEstimate(d, std, n, rms, 'too_little_motion',
+                               f'{1e3 * d:.1f} ms +- {1e3 * std:.1f} ms: too little motion in '
+                               f'view to time the camera (+- {1e3 * max_std_s:.0f} ms needed)')
+    if min(d - lo, hi - d) < grid_s:
+        return LatencyEstimate(d, std, n, rms, 'at_bound',
+                               f'{1e3 * d:.1f} ms is at the edge of the range searched '
+                               f'({1e3 * lo:.0f} to {1e3 * hi:.0f} ms)')
+    return LatencyEstimate(d, std, n, rms, 'ok',
+                           f'{1e3 * d:.1f} ms +- {1e3 * std:.2f} ms from {n} frames in motion')
