@@ -134,7 +134,7 @@ class _Model:
         return A
 
     def image(self, theta):
-        """Return the model image (N,) and its bases (N, 5) at the parameter vector."""
+        """Return the modelled pixels (N,) and the bases (N, 5) at the parameter vector."""
         A = self.bases(theta[:4], theta[6:])
         return A @ theta[4:], A
 
