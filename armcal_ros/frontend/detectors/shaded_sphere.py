@@ -48,6 +48,9 @@ import numpy as np
 SUPERSAMPLE = 3
 
 
+#: The ambient level and the lamp's term are bounded by this many times the patch's brightest
+#: pixel (above its border).
+SHADING_BOUND = 4.0
 #: Bounds on the point spread (px): below 0.3 the pixel integration dominates anyway.
 SIGMA_MIN, SIGMA_MAX = 0.3, 6.0
 
@@ -172,13 +175,15 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
     geometry = [uv0[0], uv0[1], float(radius0), min(max(sigma0, SIGMA_MIN), SIGMA_MAX), level]
     if shading0 is not None:
         # A warm start is usually within the quadratic region: a small damping to begin with.
-        best = _levenberg_marquardt(model, np.r_[geometry, np.asarray(shading0, float)],
-                                    radius0, 1e-6, max_iterations, tolerance)
+        shading0 = np.asarray(shading0, float).reshape(4)
+        best = _levenberg_marquardt(model, np.r_[geometry, shading0], radius0, top, 1e-6,
+                                    max_iterations, tolerance)
     else:
         best = None
         for light in COLD_STARTS:
             start = np.r_[geometry, 0.4 * top, 0.6 * top * np.asarray(light)]
-            got = _levenberg_marquardt(model, start, radius0, 1e-3, max_iterations, tolerance)
+            got = _levenberg_marquardt(model, start, radius0, top, 1e-3, max_iterations,
+                                       tolerance)
             if best is None or got[1] < best[1]:
                 best = got
     theta, cost, it, converged = best
@@ -197,8 +202,20 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
                      iterations=it, status=status, message=message)
 
 
-def _levenberg_marquardt(model, theta, radius0, lam, max_iterations, tolerance):
-    """Return (theta, cost, iterations, converged) from ``theta`` (module doc, Fit)."""
+def _levenberg_marquardt(model, theta, radius0, top, lam, max_iterations, tolerance):
+    """
+    Return (theta, cost, iterations, converged) from ``theta`` (module doc, Fit).
+
+    ``top`` is the patch's brightest pixel above its border: the shading cannot be brighter
+    than a few times that (blur lowers the peak, not by more), and a bound keeps a shading
+    lit only at an invisible rim - whose columns vanish, so nothing would pull it back - out.
+    """
+    bright = SHADING_BOUND * max(top, 1e-9)
+    theta = theta.copy()
+    theta[5] = min(max(theta[5], 0.0), bright)
+    norm = np.linalg.norm(theta[6:])
+    if norm > bright:
+        theta[6:] *= bright / norm
     y = model.y
     m, A = model.image(theta)
     res = y - m
@@ -226,7 +243,10 @@ def _levenberg_marquardt(model, theta, radius0, lam, max_iterations, tolerance):
             # a bright rim pose as a shifted one).
             trial[2] = min(max(trial[2], 0.5 * radius0, 0.5), 2.0 * radius0)
             trial[3] = min(max(trial[3], SIGMA_MIN), SIGMA_MAX)
-            trial[5] = max(trial[5], 0.0)
+            trial[5] = min(max(trial[5], 0.0), bright)
+            norm = np.linalg.norm(trial[6:])
+            if norm > bright:
+                trial[6:] *= bright / norm
             m_t, A_t = model.image(trial)
             res_t = y - m_t
             cost_t = res_t @ res_t

@@ -112,6 +112,9 @@ class SphereDetector(Detector):
     #: too when the centroid moved less than this, px); from several lights when there is none
     #: or that start fails.
     WARM_START_PX = 5.0
+    #: A warm-started fit whose residual exceeds the last fit's this many times is redone
+    #: from the cold starts (the better of the two kept).
+    REFIT_RMS = 2.0
 
     #: Images kept for the static scene, how often one is kept (while it is learnt, then
     #: after), and after how many intervals one is kept even if the marker has not moved.
@@ -321,12 +324,17 @@ class SphereDetector(Detector):
             near = np.hypot(*(centroid - start[0])) < self.WARM_START_PX
             fit = fit_shaded_sphere(patch, u0, v0, centroid + start[1],
                                     start[2] if near else radius0, sigma0, start[4])
-        if fit is None or not fit.ok:
-            fit = fit_shaded_sphere(patch, u0, v0, centroid, radius0, sigma0)
+        if fit is None or not fit.ok or fit.rms > self.REFIT_RMS * start[5]:
+            # No start, a failed one, or a fit much worse than the last: from several lights
+            # (a warm start can carry a wrong minimum from frame to frame).
+            cold = fit_shaded_sphere(patch, u0, v0, centroid, radius0, sigma0)
+            if fit is None or not fit.ok or (cold.ok and cold.rms < fit.rms):
+                fit = cold
         if not fit.ok or np.hypot(*(fit.uv - centroid)) > max(1.0, cand.radius):
             self._fit_start = None
             return None
-        self._fit_start = (centroid, fit.uv - centroid, fit.radius, fit.sigma, fit.shading)
+        self._fit_start = (centroid, fit.uv - centroid, fit.radius, fit.sigma, fit.shading,
+                           fit.rms)
         return fit.uv
 
     _COARSE = 4
