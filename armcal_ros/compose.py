@@ -213,5 +213,6 @@ def build_pipeline(settings: Settings, log: Optional[Callable[[str], None]] = No
                                 max_views_per_dwell=det.max_views_per_dwell,
                                 min_frames=min_frames_per_dwell(settings),
                                 cameras_on_link=settings.target.eye_in_hand,
-                                still_guard_s=fe.still_guard)
+                                still_guard_s=fe.still_guard,
+                                stamp_latency_s=dict(fe.image_stamp_latency))
     return Pipeline(chain, board, collector, build_engine(settings, chain, target))

@@ -22,7 +22,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Callable, Dict, Iterator, List, Optional
 
 import numpy as np
@@ -349,14 +349,17 @@ def collect_samples(source, settings: Settings, progress: Callable[[int, int], N
                     collector.seen_joint_names, lost=lost)
 
 
-def solve_and_write(front: FrontEnd, settings: Settings, output_dir,
-                    recording: Optional[Recording] = None) -> OfflineResult:
-    """
-    Solve the collected samples with ``settings``' noise model and write the files.
+def solve_and_write(front: FrontEnd, settings: Settings, output_dir) -> OfflineResult:
+    """Solve the collected samples with ``settings``' noise model and write the files."""
+    engine, outcome, report = _solve(front, settings)
+    if not isinstance(output_dir, OutputDirectory):
+        with _output_directory(output_dir) as out:
+            return _write(engine, outcome, report, front, out)
+    return _write(engine, outcome, report, front, output_dir)
 
-    With the ``recording`` the samples came from, each camera's stamp latency is measured on
-    its frames in motion (:mod:`armcal_ros.stamp_latency`) and reported.
-    """
+
+def _solve(front: FrontEnd, settings: Settings):
+    """Return (engine, outcome, report) of a solve of ``front``'s samples (raise if refused)."""
     if len(front.store) < settings.schedule.min_samples:
         why = why_few_samples(front.counts, front.missing_joints, front.seen_joint_names)
         raise CalibrateError(f'only {len(front.store)} samples (min_samples '
@@ -381,19 +384,33 @@ def solve_and_write(front: FrontEnd, settings: Settings, output_dir,
                               total_s=front.time_s + outcome.time_s, messages=front.messages))
     if not outcome.accepted:
         raise CalibrateError(f'calibration failed: {outcome.reason}')
-    point_marker = settings.target.marker_type in ('sphere', 'aruco')
-    if recording is not None and front.chain is not None and point_marker and \
-            not settings.target.eye_in_hand:
-        t0 = time.perf_counter()
-        T = engine.T_link_target
-        offset = settings.robot.marker_offset if T is None else np.asarray(T)[:3, 3]
-        report['stamp_latency'] = latency_report(measure_latencies(
-            recording, settings, front.chain, offset, outcome.calibration))
-        report['timings']['latency_s'] = time.perf_counter() - t0
-    if not isinstance(output_dir, OutputDirectory):
-        with _output_directory(output_dir) as out:
-            return _write(engine, outcome, report, front, out)
-    return _write(engine, outcome, report, front, output_dir)
+    return engine, outcome, report
+
+
+#: A measured stamp latency is applied (the samples paired again) when it differs from the one
+#: given (image_stamp_latency) by more than this (s) and three of its standard deviations: at
+#: the front end's speed bound (0.0375 m/s) 2 ms is 0.05 px at f = 800 px and 1.5 m.
+LATENCY_APPLY_S = 0.002
+
+
+def _measure_latency(recording, front, engine, outcome, settings):
+    """Return {camera: LatencyEstimate} on ``recording``, or None where it does not apply."""
+    if recording is None or front.chain is None or settings.target.eye_in_hand or \
+            settings.target.marker_type not in ('sphere', 'aruco'):
+        return None
+    T = engine.T_link_target
+    offset = settings.robot.marker_offset if T is None else np.asarray(T)[:3, 3]
+    return measure_latencies(recording, settings, front.chain, offset, outcome.calibration)
+
+
+def _latencies_to_apply(estimates, settings):
+    """Return {camera: latency (s)} to pair with, when a measured one differs from the given."""
+    given = dict(settings.front_end.image_stamp_latency)
+    new = {}
+    for cam, e in estimates.items():
+        if e.ok and abs(e.latency_s - given.get(cam, 0.0)) > max(LATENCY_APPLY_S, 3 * e.std_s):
+            new[cam] = e.latency_s
+    return dict(given, **new) if new else {}
 
 
 def _write(engine, outcome, report, front: FrontEnd, out: OutputDirectory) -> OfflineResult:
@@ -423,14 +440,36 @@ def calibrate_bag(source, settings: Settings, output_dir,
     The directory is checked and locked before the recording is read (a run that cannot write
     its results fails at once), and the run's files replace the previous run's as a set
     (:mod:`armcal_ros.io.output_dir`).  With ``latency`` (a bag, a point marker) each camera's
-    stamp latency is measured in a second pass over the bag and reported.
+    stamp latency is measured in a second pass over the bag and reported; where it differs
+    from the one given (``image_stamp_latency``) by more than :data:`LATENCY_APPLY_S` and its
+    noise, the frames are paired again at stamp - latency and the samples solved again.
     """
     with _output_directory(output_dir) as out:
         front = collect_samples(source, settings, progress, log)
-        recording = None
+        engine, outcome, report = _solve(front, settings)
         if latency and not is_rct_folder(source):
-            recording = open_bag(source, settings)
-        return solve_and_write(front, settings, out, recording)
+            t0 = time.perf_counter()
+            estimates = _measure_latency(open_bag(source, settings), front, engine, outcome,
+                                         settings)
+            seconds = time.perf_counter() - t0
+            if estimates:
+                apply = _latencies_to_apply(estimates, settings)
+                if apply:
+                    # Pair every frame again at its exposure time, and solve again.
+                    if log:
+                        log('stamp latency measured (' + ', '.join(
+                            f'{c} {1e3 * v:.1f} ms' for c, v in apply.items()) +
+                            '): pairing the frames again with it')
+                    settings = replace(settings, front_end=replace(
+                        settings.front_end, image_stamp_latency=tuple(apply.items())))
+                    first_s = front.time_s
+                    front = collect_samples(source, settings, None, log)
+                    engine, outcome, report = _solve(front, settings)
+                    report['timings']['front_end_s'] += first_s
+                    report['timings']['total_s'] += first_s
+                report['stamp_latency'] = latency_report(estimates, apply or None)
+                report['timings']['latency_s'] = seconds
+        return _write(engine, outcome, report, front, out)
 
 
 def make_report(settings: Settings, engine, outcome, front: FrontEnd, timings):
@@ -535,7 +574,9 @@ def format_table(report):
     for name, e in (report.get('stamp_latency') or {}).items():
         lines.append(f'{name:<10} stamp latency ' + (
             f'{e["latency_ms"]:.1f} ms +/- {e["std_ms"]:.1f} ({e["frames"]} frames in motion)'
-            if e['status'] == 'ok' else f'not measured: {e["message"]}'))
+            if e['status'] == 'ok' else f'not measured: {e["message"]}') + (
+            f'; frames paired at stamp - {e["applied_ms"]:.1f} ms' if e.get('applied_ms')
+            else ''))
     t = report['timings']
     lines.append(f'front end {t["front_end_s"]:.1f} s, solve {t["solve_s"]:.1f} s'
                  + (f', latency {t["latency_s"]:.1f} s' if 'latency_s' in t else ''))

@@ -172,6 +172,11 @@ PARAMS = [
           'stillness must also have held this long (s) before a frame\'s stamp: set it to the '
           'cameras\' stamp latency when their drivers stamp images on arrival (USB, GigE: '
           '0.03-0.1 s); 0 judges stillness at the stamp only', _nonneg, minimum=0.0),
+    Param('image_stamp_latency', 'double[]', [],
+          'per camera (same order as camera_names; one entry: every camera), how late (s) its '
+          'driver stamps images: subtracted from each image\'s stamp before it is paired with '
+          'the joint angles (USB, GigE drivers that stamp on arrival: 0.01-0.1 s; armcal '
+          'calibrate measures it, report.json stamp_latency); empty: stamps are exposure times'),
     Param('dwell_radius', 'double', 0.001,
           'still frames within this distance (m) of a dwell\'s first are pooled into one sample',
           _positive, minimum=0.0),
@@ -405,6 +410,13 @@ def check_all(values: Dict[str, Any], require_robot_model=True):
     if svc and len(svc) != len(cams):
         raise ValueError(f'parameter set_camera_info_services must be empty or have one entry '
                          f'per camera ({len(cams)}), got {len(svc)}')
+    lat = values['image_stamp_latency']
+    if lat and len(lat) not in (1, len(cams)):
+        raise ValueError(f'parameter image_stamp_latency must be empty, one value or one per '
+                         f'camera ({len(cams)}), got {len(lat)}')
+    if any(abs(v) > 1.0 for v in lat):
+        raise ValueError(f'parameter image_stamp_latency must be within 1 s of the stamp, got '
+                         f'{list(lat)}')
     names = values['camera_info_names']
     if names and len(names) != len(cams):
         raise ValueError(f'parameter camera_info_names must be empty or have one entry per '

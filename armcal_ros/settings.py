@@ -16,7 +16,7 @@ part           parameters
 ``target``     marker_type, charuco_*, aruco_size, target_pose_guess, estimate_marker_offset,
                eye_in_hand, estimate_aruco_size
 ``detector``   sphere_*, aruco_*, max_views_per_dwell
-``front_end``  max_marker_speed, dwell_radius, still_guard
+``front_end``  max_marker_speed, dwell_radius, still_guard, image_stamp_latency
 ``store``      max_samples, min_sample_spacing
 ``prior``      noise_model, point_sigma, bias_sigma, coherence_length, kernel
 ``solver``     pixel_sigma, free_distortion, robust_loss(_scale), outlier_gate_sigmas, and the
@@ -183,6 +183,8 @@ class FrontEndSettings:
     max_marker_speed: float = 0.0375
     dwell_radius: float = 0.001
     still_guard: float = 0.0
+    #: Camera name -> how late its images are stamped (s); subtracted before pairing.
+    image_stamp_latency: Tuple[Tuple[str, float], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -330,6 +332,14 @@ def with_given_intrinsics(settings: Settings, given: Dict[str, IntrinsicsPrior])
     return replace(settings, solver=with_solver_intrinsics(settings.solver, given))
 
 
+def _per_camera(values, cameras):
+    """Return ((camera, value), ...) from a per-camera list: empty, one for all, or one each."""
+    if not values:
+        return ()
+    values = list(values) * len(cameras) if len(values) == 1 else list(values)
+    return tuple((c, float(v)) for c, v in zip(cameras, values))
+
+
 def _named(build):
     try:
         return build()
@@ -369,7 +379,8 @@ def settings_from_values(values: Dict[str, Any], require_robot_model=True,
                                   v['sphere_static_scene'], v['aruco_dictionary'],
                                   None if aruco_id < 0 else aruco_id,
                                   v['max_views_per_dwell'], v['sphere_centre']),
-        front_end=FrontEndSettings(v['max_marker_speed'], v['dwell_radius'], v['still_guard']),
+        front_end=FrontEndSettings(v['max_marker_speed'], v['dwell_radius'], v['still_guard'],
+                                   _per_camera(v['image_stamp_latency'], v['camera_names'])),
         store=StoreSettings(v['max_samples'], v['min_sample_spacing']),
         prior=prior_settings(v),
         solver=solver_settings(v),

@@ -124,11 +124,20 @@ def measure_latencies(recording, settings, chain, marker_offset, calibration,
     return out
 
 
-def latency_report(estimates: Dict[str, LatencyEstimate]):
-    """Return the report.json form: {camera: {latency_ms, std_ms, frames, rms_px, status, ...}}."""
+def latency_report(estimates: Dict[str, LatencyEstimate], applied=None):
+    """
+    Return the report.json form: {camera: {latency_ms, std_ms, frames, rms_px, status, ...}}.
+
+    ``applied`` {camera: s}: the latencies the final samples were paired with (None: the
+    frames were paired as given); each camera then has ``applied_ms``.
+    """
     def ms(v):
-        return None if not np.isfinite(v) else round(1e3 * float(v), 3)
-    return {cam: dict(latency_ms=ms(e.latency_s), std_ms=ms(e.std_s), frames=e.frames,
-                      rms_px=None if not np.isfinite(e.rms_px) else round(e.rms_px, 4),
-                      status=e.status, message=e.message)
-            for cam, e in estimates.items()}
+        return None if v is None or not np.isfinite(v) else round(1e3 * float(v), 3)
+    out = {}
+    for cam, e in estimates.items():
+        out[cam] = dict(latency_ms=ms(e.latency_s), std_ms=ms(e.std_s), frames=e.frames,
+                        rms_px=None if not np.isfinite(e.rms_px) else round(e.rms_px, 4),
+                        status=e.status, message=e.message)
+        if applied is not None:
+            out[cam]['applied_ms'] = ms(applied.get(cam, 0.0))
+    return out

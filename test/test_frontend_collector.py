@@ -225,3 +225,16 @@ def test_a_camera_silent_for_minutes_comes_back_into_the_samples():
     assert [sorted(s.observations) for s in samples] == [['c1', 'c2'], ['c1'], ['c1', 'c2']]
     assert not [k for k in col.counts if k.startswith(('frames_stale', 'frames_gap',
                                                        'time_jump'))], col.counts
+
+
+def test_a_camera_stamped_late_is_paired_at_its_exposure():
+    """``stamp_latency_s`` moves a camera's frames back before pairing; unknown names refused."""
+    with pytest.raises(ValueError, match='stamp_latency_s'):
+        SampleCollector(None, (0, 0, 0), ['cam1'], {'cam1': object()},
+                        stamp_latency_s={'cam9': 0.03})
+    c = SampleCollector(None, (0, 0, 0), ['cam1'], {'cam1': object()},
+                        stamp_latency_s={'cam1': 0.03})
+    seen = []
+    c.pairer.add_frame = lambda cam, stamp, msg: seen.append(stamp) or []
+    c.add_image('cam1', 1_000_000_000, b'')
+    assert seen == [970_000_000]

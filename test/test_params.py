@@ -58,6 +58,14 @@ def test_cross_parameter_rules():
     values = defaults()
     with pytest.raises(ValueError, match='robot_description'):
         check_all(values)
+    for latency, why in (([0.01, 0.02], 'image_stamp_latency must be empty, one value or one '
+                                        'per camera'),
+                         ([2.0], 'image_stamp_latency must be within 1 s')):
+        values = defaults()
+        values['robot_description'] = '<robot name="x"/>'
+        values['image_stamp_latency'] = latency
+        with pytest.raises(ValueError, match=why):
+            check_all(values)
 
 
 def test_parameter_file_sections_unknown_names_and_relative_urdf(tmp_path):

@@ -91,6 +91,9 @@ class SampleCollector:
     metre (:data:`CAMERA_ON_LINK_REFERENCE_M`), since a small turn of the camera moves the whole
     scene in the image.
 
+    ``stamp_latency_s`` {camera: s}: how late a camera's driver stamps its images; its frames
+    are paired with the joint angles at stamp - latency (and the samples carry that time).
+
     ``min_frames`` is how many frames of a camera a dwell needs for an observation (None: 1
     for a board, 2 otherwise).  A board's corners come from its markers' decoded ids and a
     local homography fit, and a tag's from its decoded id: one frame is trustworthy.  A glint
@@ -106,12 +109,18 @@ class SampleCollector:
                  max_marker_speed=0.0375, dwell_radius=0.001, log=None,
                  board: Optional[BoardTarget] = None, max_pose_gap_s=0.1, min_frames=None,
                  cameras_on_link=False,
-                 max_views_per_dwell=3, still_guard_s=0.0):
+                 max_views_per_dwell=3, still_guard_s=0.0, stamp_latency_s=None):
         self.chain = chain
         self.pose_input = chain is None
         self.board = board
         self.marker_offset = np.asarray(marker_offset, float).reshape(3)
         self.camera_names = list(camera_names)
+        # How late each camera's driver stamps (s): its frames are paired at stamp - latency.
+        self.stamp_latency_ns = {c: int(round(float(s) * 1e9))
+                                 for c, s in (stamp_latency_s or {}).items()}
+        unknown = sorted(set(self.stamp_latency_ns) - set(self.camera_names))
+        if unknown:
+            raise ValueError(f'stamp_latency_s: no camera named {unknown}')
         self.detectors = detectors
         missing = [c for c in self.camera_names if c not in detectors]
         if missing:
@@ -228,6 +237,7 @@ class SampleCollector:
             self._count('unknown_camera', f'image from unknown camera {camera!r}')
             return []
         self.counts['frames'] += 1
+        stamp_ns -= self.stamp_latency_ns.get(camera, 0)
         return self._process(self.pairer.add_frame(camera, stamp_ns, msg))
 
     def flush(self) -> List:
