@@ -44,6 +44,7 @@ bench: $(STAMP)
 	$(PY) bench/hyperparameters.py
 	$(PY) bench/changes.py
 	$(PY) bench/realism.py
+	$(PY) bench/realism.py --all-effects
 	$(PY) bench/arm_effects.py
 	$(PY) bench/latency.py
 	$(PY) bench/change_split.py

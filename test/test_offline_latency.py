@@ -31,3 +31,7 @@ def test_late_stamps_are_measured_per_camera(tmp_path):
         assert got['status'] == 'ok', got
         assert abs(got['latency_ms'] - expected_ms) < 5.0, (name, got, expected_ms)
         assert got['frames'] >= 50
+        # The late cameras' frames were paired again at their measured latency; the third's
+        # (on time, within 2 ms) as stamped.
+        assert got['applied_ms'] == pytest.approx(got['latency_ms'] if expected_ms > 10 else 0,
+                                                  abs=1e-6), got
