@@ -632,7 +632,7 @@ def run(args):
             print(('\n' if live else '') + f'[armcal] {message}', file=sys.stderr)
 
     res = calibrate_bag(args.bag, settings, args.output, progress, log,
-                        latency=not args.no_latency)
+                        latency=not getattr(args, 'no_latency', False))
     if live:
         print('', file=sys.stderr)
     if args.quiet:
