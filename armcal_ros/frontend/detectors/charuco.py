@@ -171,7 +171,9 @@ class CharucoDetector(Detector):
             gray = cv2.convertScaleAbs(gray, alpha=255.0 / white_level(gray.dtype))
         corners, ids, _, marker_ids = self._detector.detectBoard(np.ascontiguousarray(gray))
         if ids is None or len(ids) < self.min_corners:
-            self.last_status = 'none' if marker_ids is None else 'too_few_corners'
+            # No marker: None (OpenCV 4) or an empty array (OpenCV 5).
+            seen = marker_ids is not None and len(marker_ids) > 0
+            self.last_status = 'too_few_corners' if seen else 'none'
             return np.zeros((0, 2)), np.zeros(0, np.int64)
         uv = np.asarray(corners, float).reshape(-1, 2)
         bid = self.board.ids_from_opencv(ids)
