@@ -24,7 +24,8 @@ MAX_FRAMES = 200
 #: The marker must move at least this fast in the image (px/s) for a frame to be timed: at
 #: 50 px/s a millisecond is 0.05 px, about the detector's noise.
 MIN_IMAGE_SPEED = 50.0
-#: The first pass over the recording spaces the frames it keeps by at least this (s).
+#: The pass spaces the frames it keeps by at least this (s), doubled each time a camera has
+#: 2 MAX_FRAMES of them (which are then thinned to every other one).
 MIN_SPACING_S = 0.05
 
 
@@ -59,6 +60,7 @@ def measure_latencies(recording, settings, chain, marker_offset, calibration,
     js_t, js_q = [], []
     last = {}
     pending = {c: [] for c in cameras}
+    spacing = {c: MIN_SPACING_S for c in cameras}
 
     def q_now(tq):
         """Return (q, dq/dt) from the latest two joint states (before ``tq``), or None."""
@@ -82,7 +84,7 @@ def measure_latencies(recording, settings, chain, marker_offset, calibration,
         elif kind == 'image' and event[1] in cameras:
             _, cam, stamp_ns, msg = event
             t = stamp_ns * 1e-9
-            if t - last.get(cam, -np.inf) < MIN_SPACING_S:
+            if t - last.get(cam, -np.inf) < spacing[cam]:
                 continue
             state = q_now(t)
             if state is None:
@@ -103,6 +105,12 @@ def measure_latencies(recording, settings, chain, marker_offset, calibration,
             if dets:
                 pending[cam].append((t, dets[0].uv))
                 last[cam] = t
+                if len(pending[cam]) >= 2 * MAX_FRAMES:
+                    # Thin to every other frame and halve the rate: the frames stay spread
+                    # over the whole recording, and at most ~2 MAX_FRAMES are decoded per
+                    # doubling of its length.
+                    pending[cam] = pending[cam][::2]
+                    spacing[cam] *= 2.0
     if len(js_t) < 2:
         return {}
     js_t, js_q = np.asarray(js_t), np.asarray(js_q)

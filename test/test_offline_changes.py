@@ -25,7 +25,7 @@ def test_a_knocked_camera_is_found_and_recalibrated_offline(knocked_bag, tmp_pat
     gt = knocked_bag / 'ground_truth'
     settings = load_settings(str(gt / 'params.yaml'))
     out = tmp_path / 'out'
-    res = calibrate_bag(str(knocked_bag), settings, str(out))
+    res = calibrate_bag(str(knocked_bag), settings, str(out), latency=False)
     report = json.loads((out / 'report.json').read_text())
     events = [e for e in report['changes']['events'] if e['kind'] != 'disagreement']
     assert len(events) == 1, report['changes']
@@ -56,7 +56,8 @@ def test_a_knocked_camera_is_found_and_recalibrated_offline(knocked_bag, tmp_pat
 def test_no_change_is_declared_on_the_unchanged_demo_bag(tmp_path):
     root = Path(__file__).resolve().parents[1]
     settings = load_settings(str(root / 'config' / 'demo.yaml'))
-    calibrate_bag(str(root / 'bags' / 'demo'), settings, str(tmp_path / 'out'))
+    calibrate_bag(str(root / 'bags' / 'demo'), settings, str(tmp_path / 'out'),
+                  latency=False)
     report = json.loads((tmp_path / 'out' / 'report.json').read_text())
     assert report['changes']['events'] == [], report['changes']
     assert report['changes']['solves_while_reading'] >= 3

@@ -70,7 +70,7 @@ def offline(sim, tmp_path_factory):
     from armcal_ros.settings import load_settings
     root = tmp_path_factory.mktemp('offline')
     values = load_settings(write_params(root / 'params.yaml', NODE_PARAMS))
-    return calibrate_bag(sim.bag, values, str(root / 'out')).report
+    return calibrate_bag(sim.bag, values, str(root / 'out'), latency=False).report
 
 
 @pytest.fixture(scope='module')

@@ -82,7 +82,8 @@ def test_board_with_pose_input_live_equals_offline(ros_env, client, board_pose_b
     params = board_params(tmp_path / 'board.yaml', pose_topic='/tool_pose',
                           pose_type='pose_stamped', **BOARD_SIZE, solve_period=1.0,
                           resume=False, output_dir=str(tmp_path / 'live'))
-    offline = calibrate_bag(bag, load_settings(params), str(tmp_path / 'offline'))
+    offline = calibrate_bag(bag, load_settings(params), str(tmp_path / 'offline'),
+                            latency=False)
     info = {'cam': client.record(CameraInfo, '/armcal/cam/camera_info')[0]}
     diag, _ = client.record(DiagnosticArray, '/diagnostics', 10)
     procs = []
