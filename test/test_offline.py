@@ -197,9 +197,11 @@ def test_ctrl_c_ends_calibrate_with_one_line_and_status_130(sim_bag, tmp_path):
     out = tmp_path / 'out'
     out.mkdir()
     (out / 'cam1.yaml').write_text('an earlier result')
+    # A suite started in the background inherits SIGINT ignored; the user's shell does not.
     proc = subprocess.Popen([sys.executable, '-m', 'armcal_ros.cli', 'calibrate', str(bag),
                              '--params', str(params), '--output', str(out)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     # The staging area appears once the directory is locked, before the bag is read (the
     # whole run takes ~3 s): interrupt then, mid-run.
     deadline = time.monotonic() + 60
