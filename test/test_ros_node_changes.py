@@ -62,8 +62,17 @@ def test_node_detects_a_knocked_camera_withdraws_and_recalibrates_it(ros_env, cl
         onset = [r['onset_ns'] for r in json.load(f)['records'] if r['camera'] == 'cam2']
     with open(gt / 'changes.yaml') as f:
         knock = yaml.safe_load(f)[0]['time_ns']
-    # The first view after the knock, or one dwell earlier when a dwell spans it.
-    assert onset and -5.0 < (onset[0] - knock) * 1e-9 < 5.0, (onset, knock)
+    # Not before the knock (one dwell's margin), and within the first 10 views of cam2 the
+    # node stored after it (the change monitor's target).  Counted in the node's own views:
+    # a machine too slow for the 4 x replay drops dwells (on a slow machine the onset came
+    # 8-34 s after the knock, 5 views after it when the node was alone).
+    store = np.load(tmp_path / 'out' / 'samples.npz')
+    cam = json.loads(str(store['meta']))['camera_names'].index('cam2')
+    obs = np.concatenate([store['obs'], store['retired_obs']])
+    views = np.sort(obs[obs[:, 1] == cam, 3])
+    after = views[views >= knock - 5_000_000_000]
+    assert onset and -5.0 < (onset[0] - knock) * 1e-9, (onset, knock)
+    assert len(after) >= 10 and onset[0] <= after[9], (onset, knock, after[:10])
     assert main['changes'] == '1', main
     withdrawn = [m for _, m in info['cam2'] if m.k[0] == 0.0]
     assert withdrawn, 'no uncalibrated CameraInfo while cam2 was being recalibrated'
