@@ -62,9 +62,9 @@ def measure_latencies(recording, settings, chain, marker_offset, calibration,
     pending = {c: [] for c in cameras}
     spacing = {c: MIN_SPACING_S for c in cameras}
 
-    def q_now(tq):
-        """Return (q, dq/dt) from the latest two joint states (before ``tq``), or None."""
-        if len(js_t) < 2 or js_t[-1] - js_t[-2] <= 0:
+    def q_now():
+        """Return (q, dq/dt) from the latest two joint states (stamps increase), or None."""
+        if len(js_t) < 2:
             return None
         return js_q[-1], (js_q[-1] - js_q[-2]) / (js_t[-1] - js_t[-2])
 
@@ -86,7 +86,7 @@ def measure_latencies(recording, settings, chain, marker_offset, calibration,
             t = stamp_ns * 1e-9
             if t - last.get(cam, -np.inf) < spacing[cam]:
                 continue
-            state = q_now(t)
+            state = q_now()
             if state is None:
                 continue
             q, dq = state
