@@ -110,7 +110,8 @@ def build_detectors(settings: Settings, camera_names, board: Optional[CharucoBoa
             out[name] = make_detector('sphere', min_radius_px=det.sphere_min_radius_px,
                                       max_radius_px=det.sphere_max_radius_px,
                                       static_scene=det.sphere_static_scene,
-                                      centre=det.sphere_centre)
+                                      centre=('centroid' if det.sphere_centre == 'centroid'
+                                              else 'shaded'))
         else:
             out[name] = make_detector('aruco', dictionary=det.aruco_dictionary,
                                       marker_id=det.aruco_id, corners=settings.target.tag_corners)
@@ -144,7 +145,10 @@ def engine_settings(settings: Settings, board: Optional[BoardTarget] = None) -> 
                           change=ChangeSettings(false_alarm=s.change_false_alarm),
                           recalibration_samples=s.recalibration_samples,
                           max_sample_age_s=s.max_sample_age_s,
-                          marker_light=_marker_light(settings)).validate()
+                          marker_light=_marker_light(settings),
+                          pool_light_shift=(settings.target.marker_type == 'sphere' and
+                                            settings.detector.sphere_centre == 'shaded_pooled')
+                          ).validate()
 
 
 def _marker_light(settings: Settings):
@@ -156,6 +160,10 @@ def _marker_light(settings: Settings):
         raise ValueError('marker_lamp is for marker_type sphere, got ' + repr(t.marker_type))
     if not t.radius > 0:
         raise ValueError('marker_lamp needs marker_radius > 0 (the ball\'s radius, m)')
+    if settings.detector.sphere_centre != 'centroid':
+        raise ValueError('marker_lamp corrects intensity centroids: it needs sphere_centre '
+                         f'centroid, got {settings.detector.sphere_centre!r} (a fitted centre '
+                         'has no light offset to remove)')
     return tuple(t.lamp), t.ambient, t.radius
 
 

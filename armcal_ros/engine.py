@@ -50,6 +50,7 @@ from armcal_ros.core.initialisation import initialise_with_intrinsics
 from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
 from armcal_ros.core.image_noise import pooled_pixel_sigma
 from armcal_ros.core.kinematic_prior import KinematicData, tip_place
+from armcal_ros.core.light_pooling import pool_light_shift
 from armcal_ros.core.marker_light import image_offsets
 from armcal_ros.core.priors import KINEMATIC_MODELS, PriorSettings
 from armcal_ros.core.results import Calibration, calibration_from_result
@@ -98,6 +99,10 @@ class EngineSettings:
     #: radius m); each view's centroid offset is removed before a solve
     #: (:mod:`armcal_ros.core.marker_light`).  None: the marker glows alike from every side.
     marker_light: Optional[Tuple[Tuple[float, float, float], float, float]] = None
+    #: Observations carrying a centroid beside a fitted centre (the shaded sphere) are solved
+    #: at the centroid plus the camera's light shift pooled over its views
+    #: (:mod:`armcal_ros.core.light_pooling`).
+    pool_light_shift: bool = False
 
     def validate(self):
         """Raise ValueError naming the first bad setting; return self."""
@@ -148,6 +153,38 @@ class EngineSettings:
                 raise ValueError(f'point_place_guess must have shape (3,), got '
                                  f'{np.shape(self.point_place_guess)}')
         return self
+
+
+def pooled_light_arrays(arrays):
+    """
+    Return (arrays, {camera: PooledShift}): observations with centroids moved to the pooled centre.
+
+    Per camera, the observations with an intensity centroid beside their fitted centre get
+    ``uv = centroid + pooled shift`` (:func:`~armcal_ros.core.light_pooling.pool_light_shift`,
+    over the nominal points) and a spread that carries the centroid's scatter plus the
+    smooth's variance, so that :func:`~armcal_ros.core.image_noise.pooled_pixel_sigma` sees
+    the noise of the new centres: a frame variance s^2 + n v per axis, i.e.
+    spread^2 = c^2 + 2 (n - 1) v for the centroid's spread c over n frames.
+    """
+    has = np.all(np.isfinite(arrays.centroid_uv), axis=1)
+    if not np.any(has):
+        return arrays, {}
+    uv, spread = arrays.uv.copy(), arrays.spread_px.copy()
+    info = {}
+    for c, name in enumerate(arrays.camera_names):
+        sel = np.flatnonzero(has & (arrays.camera_index == c))
+        if not len(sel):
+            continue
+        pooled = pool_light_shift(arrays.points[arrays.point_index[sel]],
+                                  arrays.uv[sel] - arrays.centroid_uv[sel])
+        info[name] = pooled
+        if pooled.status != 'ok':
+            continue
+        uv[sel] = arrays.centroid_uv[sel] + pooled.shift
+        n = arrays.n_frames[sel]
+        spread[sel] = np.sqrt(arrays.centroid_spread_px[sel] ** 2 +
+                              2.0 * np.maximum(n - 1, 0) * pooled.variance)
+    return replace(arrays, uv=uv, spread_px=spread), info
 
 
 def _residuals_worse(old, new, ratio, margin_px):
@@ -260,6 +297,8 @@ class CalibrationEngine:
                                      enabled=self.settings.detect_changes and board is None)
         self._change_listeners: List[Callable] = []
         self._views_counted_at = -1
+        #: Camera -> its pooled light shift at the last solve (``pool_light_shift``).
+        self.light_pooling = {}
 
     @property
     def target_estimated(self) -> Optional[bool]:
@@ -480,6 +519,8 @@ class CalibrationEngine:
     def _problem(self):
         names = list(self.settings.camera_names)
         arrays = self.store.arrays(camera_names=names)
+        if self.settings.pool_light_shift:
+            arrays, self.light_pooling = pooled_light_arrays(arrays)
         specs, missing = [], []
         for name in names:
             if name not in self.image_sizes:

@@ -26,8 +26,9 @@ from armcal_ros.core.robust import LOSSES
 
 NAME_RE = re.compile(r'^[A-Za-z0-9_]+$')
 MARKER_TYPES = ('sphere', 'aruco', 'charuco')
-#: SphereDetector.CENTRES (frontend/detectors/sphere.py)
-SPHERE_CENTRES = ('centroid', 'shaded')
+#: SphereDetector.CENTRES (frontend/detectors/sphere.py), and the shaded fit's light shift
+#: pooled over each camera's views (core/light_pooling.py)
+SPHERE_CENTRES = ('centroid', 'shaded', 'shaded_pooled')
 POSE_TYPES = ('pose_stamped', 'transform_stamped')
 NODE_NAME = 'armcal'
 #: Parameters that name files: a relative path is resolved against the parameter file's folder.
@@ -216,7 +217,11 @@ PARAMS = [
           'ball that glows alike from every side, an LED in a diffuser) or shaded (a fit of '
           'a shaded ball - outline, one lamp from any side, ambient, blur - whose centre does '
           'not move with the light; for a matte or painted ball under the cell\'s lamps; '
-          'about twice the noise of the centroid and 1-2 ms per still frame)',
+          'about twice the noise of the centroid and 1-2 ms per still frame) or '
+          'shaded_pooled (the same fit, but each view solved at its centroid plus the '
+          'light\'s shift of the centroid pooled over the camera\'s views at nearby places: '
+          'the centroid\'s noise without its bias, for light fixed in the cell; not for an '
+          'LED whose bright side turns with the tool)',
           _one_of(SPHERE_CENTRES)),
     Param('aruco_dictionary', 'string', 'DICT_4X4_50', 'ArUco dictionary (cv2.aruco name)'),
     Param('aruco_id', 'int', -1, 'ArUco id of the marker (-1: any)'),

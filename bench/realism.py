@@ -50,7 +50,9 @@ PIPELINE_RUNS = (('uniform', 'uniform', False, 'centroid'),
                  ('uniform, shaded fit', 'uniform', False, 'shaded'),
                  ('lamp, not corrected', 'lamp', False, 'centroid'),
                  ('lamp, corrected (lamp given)', 'lamp', True, 'centroid'),
-                 ('lamp, shaded fit', 'lamp', False, 'shaded'))
+                 ('lamp, shaded fit', 'lamp', False, 'shaded'),
+                 ('uniform, shaded fit, shift pooled', 'uniform', False, 'shaded_pooled'),
+                 ('lamp, shaded fit, shift pooled', 'lamp', False, 'shaded_pooled'))
 LAMP_HEIGHT = 1.5          # m above the workspace centre
 AMBIENT = 0.25
 MAX_MARKER_SPEED = defaults()['max_marker_speed']      # m/s, the front end's stillness bound
@@ -169,7 +171,9 @@ def lamp_search(duration):
 ALL_EFFECTS_RUNS = (('uniform light, no arm or clock effect, centroid', False, 'centroid', []),
                     ('lamp and every effect, centroid, frames as stamped', True, 'centroid',
                      ['--no-latency']),
-                    ('lamp and every effect, shaded fit, latency measured', True, 'shaded', []))
+                    ('lamp and every effect, shaded fit, latency measured', True, 'shaded', []),
+                    ('lamp and every effect, shaded fit with the shift pooled, latency measured',
+                     True, 'shaded_pooled', []))
 
 
 def all_effects_case(args):
@@ -231,7 +235,9 @@ def all_effects(args):
         'repeatability, a 0.15 mm 10 Hz ring-down after stops). The realistic recording is '
         'calibrated as before (centroid, frames paired as stamped) and with the new front end '
         '(`sphere_centre: shaded`, each camera\'s stamp latency measured and the frames paired '
-        'again at it). Median (worst) over the seeds; ratio: shape error over the clean '
+        'again at it), and the same with each view at its centroid plus the light\'s shift '
+        'pooled over the camera\'s views (`shaded_pooled`, core/light_pooling.py). Median '
+        '(worst) over the seeds; ratio: shape error over the clean '
         f'run\'s (target: at most 2). Measured on {machine()}.', '',
         table(['cell', 'recording, front end', 'shape mm', 'absolute mm', 'focal %',
                'shape / clean'], rows)])
@@ -310,7 +316,10 @@ def main(argv=None):
           '`marker_lamp` left empty (not corrected) and given (each view\'s offset computed '
           'from the ball\'s shading, core/marker_light.py; the lamp\'s place is the '
           'simulator\'s, what a user of the cell would measure), and the shaded-ball fit '
-          '(`sphere_centre: shaded`, no lamp given), also under uniform light.', '',
+          '(`sphere_centre: shaded`, no lamp given), also under uniform light; "shift '
+          'pooled": each view at its centroid plus the shaded fit\'s shift of the centroid '
+          'pooled over the camera\'s views at nearby places (`shaded_pooled`, '
+          'core/light_pooling.py).', '',
           table(['cell', 'lighting', 'shape mm', 'absolute mm', 'focal %'], prow), '',
           'Can the data find the lamp? One lit puma-3cam recording (seed 0) calibrated with '
           '`kinematic` given no lamp, the true one and lamps a metre off: the image noise '

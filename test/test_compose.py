@@ -87,3 +87,15 @@ def test_a_lit_marker_needs_its_radius_and_a_sphere():
         check_value('marker_lamp', [0.5, 0.0])
     with pytest.raises(ValueError, match='marker_ambient'):
         check_value('marker_ambient', 1.2)
+
+
+def test_a_fitted_centre_is_not_lamp_corrected_and_pooling_is_switched_by_the_centre():
+    with pytest.raises(ValueError, match='sphere_centre'):
+        engine_settings(_settings(marker_lamp=[0.5, 0.0, 1.5], marker_radius=0.005,
+                                  sphere_centre='shaded'))
+    assert engine_settings(_settings(sphere_centre='shaded_pooled')).pool_light_shift
+    assert not engine_settings(_settings(sphere_centre='shaded')).pool_light_shift
+    assert not engine_settings(_settings()).pool_light_shift
+    from armcal_ros.compose import build_detectors
+    det = build_detectors(_settings(sphere_centre='shaded_pooled'), ['cam1', 'cam2'])
+    assert [d.centre for d in det.values()] == ['shaded', 'shaded']

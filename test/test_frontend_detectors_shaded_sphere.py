@@ -109,11 +109,17 @@ def test_the_detector_uses_the_fit_on_a_lit_frame():
     detectors = {c: make_detector('sphere', centre=c) for c in ('centroid', 'shaded')}
     cam0 = np.flatnonzero((f.camera == 0) & (f.occlusion == OCCLUSION_NONE))[:60]
     errs = {c: [] for c in detectors}
+    centroids = {c: [] for c in detectors}
     for i in cam0:
         image = sim.render(i, 'mono8', sensor=sensor)
         for c, det in detectors.items():
             got = det.detect(image)
             assert got, (c, det.last_status)
             errs[c].append(got[0].uv - f.uv[i])
+            centroids[c].append(got[0].centroid)
     shift = {c: np.linalg.norm(np.mean(e, axis=0)) for c, e in errs.items()}
     assert shift['centroid'] > 0.2 and shift['shaded'] < 0.05, shift
+    # The fit keeps the blob's centroid beside its centre (for pooling the light's shift).
+    assert all(c is None for c in centroids['centroid'])
+    d = np.array(centroids['shaded']) - (np.array(errs['centroid']) + f.uv[cam0])
+    assert np.abs(d).max() < 1e-9

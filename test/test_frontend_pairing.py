@@ -450,3 +450,20 @@ def test_pooler_cap_validation():
             DwellPooler(_identity_fk, max_views=bad)
     with pytest.raises(ValueError, match=r'max_views .* >= min_frames \(2\)'):
         DwellPooler(_identity_fk, min_frames=2, max_views=1)
+
+
+def test_fitted_centres_carry_their_centroids_through_the_dwell():
+    pooler = DwellPooler(fk, min_frames=2, outlier_px=2.0)
+    q = [0.2, 0.9]
+    out = []
+    for k in range(6):
+        fitted, centroid = np.array([100.0 + 0.01 * k, 50.0]), np.array([100.4, 50.0 + 0.02 * k])
+        out += pooler.add(_still('cam1', 33 * k, q), [Detection(
+            uv=fitted, id=0, quality=1.0, radius_px=5.0, centroid=centroid)])
+        out += pooler.add(_still('cam2', 33 * k + 5, q), _det((10.0, 10.0)))
+    out += pooler.flush()
+    o1, o2 = out[0].observations['cam1'], out[0].observations['cam2']
+    np.testing.assert_allclose(o1.uv, [[100.025, 50.0]])
+    np.testing.assert_allclose(o1.centroid_uv, [[100.4, 50.05]])
+    assert o1.centroid_spread_px == pytest.approx(np.std(0.02 * np.arange(6)))
+    assert o2.centroid_uv is None and o2.centroid_spread_px == 0.0

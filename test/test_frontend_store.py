@@ -137,8 +137,12 @@ def test_save_load_round_trip_and_resume(tmp_path):
                                         spread=0.01 * k, stamp=1000 * k) for c in cams},
                    stamp_ns=10 ** 9 + k, q=rng.normal(size=2),
                    pose=np.eye(4) if k == 4 else None)
+        if k % 4 == 1:               # a shaded-sphere view: its centroid kept beside it
+            o = next(iter(s.observations.values()))
+            o.centroid_uv, o.centroid_spread_px = o.uv + 0.3, 0.002 * k
         store.add(s)
     store.remove(5)
+    assert np.count_nonzero(np.isfinite(store.arrays().centroid_uv[:, 0])) > 2
     path = store.save(str(tmp_path))
     assert path == os.path.join(str(tmp_path), FILE_NAME)
     assert os.listdir(tmp_path) == [FILE_NAME]               # no temporary file left
@@ -147,7 +151,7 @@ def test_save_load_round_trip_and_resume(tmp_path):
     assert len(loaded) == len(store) == 11
     a, b = store.arrays(), loaded.arrays()
     for field in ('points', 'sample_ids', 'camera_index', 'point_index', 'uv', 'target_ids',
-                  'n_frames', 'spread_px'):
+                  'n_frames', 'spread_px', 'centroid_uv', 'centroid_spread_px'):
         np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
     assert a.camera_names == b.camera_names
     by_id = {s.id: s for s in loaded}

@@ -480,7 +480,7 @@ class _Dwell:
         self.first_stamp = self.last_stamp = frame.stamp_ns
         self.qs = []
         self.stamps = []
-        self.per_camera = {}      # camera -> list of (stamp, {id: uv})
+        self.per_camera = {}      # camera -> list of (stamp, {id: uv}, {id: centroid})
 
     def add(self, frame, detections):
         self.qs.append(frame.q)
@@ -489,7 +489,9 @@ class _Dwell:
         self.first_stamp = min(self.first_stamp, frame.stamp_ns)
         if detections:
             uvs = {int(d.id): np.asarray(d.uv, dtype=float) for d in detections}
-            self.per_camera.setdefault(frame.camera, []).append((frame.stamp_ns, uvs))
+            cents = {int(d.id): np.asarray(d.centroid, dtype=float) for d in detections
+                     if d.centroid is not None}
+            self.per_camera.setdefault(frame.camera, []).append((frame.stamp_ns, uvs, cents))
 
 
 class DwellPooler:
@@ -505,7 +507,10 @@ class DwellPooler:
     On closing, per camera and target id: the median of the frames' detections, frames
     further than ``outlier_px`` from it dropped (a spurious detection in one frame), and the
     mean of the rest; kept if at least ``min_frames`` remain.  ``spread_px`` is their RMS
-    distance from the mean.  The sample's ``q`` is the mean joint vector
+    distance from the mean.  When every kept frame's detection carries an intensity
+    ``centroid`` beside its fitted centre, their mean and spread over the same frames go into
+    the observation as well (``centroid_uv``, ``centroid_spread_px``; all targets of the
+    camera or none).  The sample's ``q`` is the mean joint vector
     (``mean_config(Q (F, n))``, the arithmetic mean by default; pose input passes a rotation-
     aware mean of its pose vectors) and ``point_nominal = fk(q)``.  When ``fk`` returns R > 1
     reference points (an extended target), the dwell radius applies to the farthest of them
@@ -621,12 +626,13 @@ class DwellPooler:
                        reference_points=points if len(points) > 1 else None)]
 
     def _pool_camera(self, frames):
-        ids = sorted({i for _, uvs in frames for i in uvs})
+        ids = sorted({i for _, uvs, _ in frames for i in uvs})
         uv_out, id_out, sq_sum, n_sq = [], [], 0.0, 0
+        cent_out, cent_sq = [], 0.0
         frames_used = set()
         for tid in ids:
-            rows = [(k, uvs[tid]) for k, (_, uvs) in enumerate(frames) if tid in uvs]
-            pts = np.array([uv for _, uv in rows])
+            rows = [k for k, (_, uvs, _) in enumerate(frames) if tid in uvs]
+            pts = np.array([frames[k][1][tid] for k in rows])
             med = np.median(pts, axis=0)
             inlier = np.linalg.norm(pts - med, axis=1) <= self.outlier_px
             if np.count_nonzero(inlier) < self.min_frames:
@@ -634,11 +640,21 @@ class DwellPooler:
             mean = pts[inlier].mean(axis=0)
             sq_sum += float(np.sum((pts[inlier] - mean) ** 2))
             n_sq += int(np.count_nonzero(inlier))
-            frames_used.update(k for (k, _), ok in zip(rows, inlier) if ok)
+            kept = [k for k, ok in zip(rows, inlier) if ok]
+            frames_used.update(kept)
             uv_out.append(mean)
             id_out.append(tid)
+            if cent_out is not None and all(tid in frames[k][2] for k in kept):
+                cents = np.array([frames[k][2][tid] for k in kept])
+                cent_out.append(cents.mean(axis=0))
+                cent_sq += float(np.sum((cents - cents.mean(axis=0)) ** 2))
+            else:
+                cent_out = None
         if not uv_out:
             return None
         stamps = np.array([frames[k][0] for k in sorted(frames_used)], dtype=np.int64)
         return Observation(uv=np.array(uv_out), ids=np.array(id_out), n_frames=len(frames_used),
-                           spread_px=math.sqrt(sq_sum / n_sq), stamp_ns=int(np.median(stamps)))
+                           spread_px=math.sqrt(sq_sum / n_sq), stamp_ns=int(np.median(stamps)),
+                           centroid_uv=None if cent_out is None else np.array(cent_out),
+                           centroid_spread_px=(0.0 if cent_out is None
+                                               else math.sqrt(cent_sq / n_sq)))

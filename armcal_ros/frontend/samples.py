@@ -29,7 +29,9 @@ class Observation:
     ``uv`` (K, 2) pixels (OpenCV convention), ``ids`` (K,) target point ids (0 for a sphere),
     ``n_frames`` the frames pooled, ``spread_px`` the RMS distance of the pooled detections
     from ``uv`` (a per-observation noise estimate; 0 for a single frame), ``stamp_ns`` the
-    median image stamp.
+    median image stamp.  When ``uv`` is a fitted centre (a shaded sphere), ``centroid_uv``
+    (K, 2) is the same frames' mean intensity centroid and ``centroid_spread_px`` its spread
+    (None and 0 otherwise).
     """
 
     uv: np.ndarray
@@ -37,6 +39,8 @@ class Observation:
     n_frames: int = 1
     spread_px: float = 0.0
     stamp_ns: int = 0
+    centroid_uv: Optional[np.ndarray] = None
+    centroid_spread_px: float = 0.0
 
     def __post_init__(self):
         self.uv = np.asarray(self.uv, dtype=float).reshape(-1, 2)
@@ -51,6 +55,13 @@ class Observation:
             raise ValueError(f'n_frames must be >= 1, got {self.n_frames}')
         self.spread_px = float(self.spread_px)
         self.stamp_ns = int(self.stamp_ns)
+        if self.centroid_uv is not None:
+            self.centroid_uv = np.asarray(self.centroid_uv, dtype=float).reshape(-1, 2)
+            if self.centroid_uv.shape != self.uv.shape or \
+                    not np.all(np.isfinite(self.centroid_uv)):
+                raise ValueError(f'centroid_uv must be finite with the shape of uv '
+                                 f'{self.uv.shape}, got {self.centroid_uv.shape}')
+        self.centroid_spread_px = float(self.centroid_spread_px)
 
     def better_than(self, other):
         """Return True if this observation is the more trustworthy (more frames, less spread)."""

@@ -64,7 +64,9 @@ class SolverArrays:
     ``points`` (N, 3) nominal 3D points (metres), ``sample_ids`` (N,); per observation (M):
     ``camera_index`` into ``camera_names``, ``point_index`` into ``points``, ``uv`` (M, 2),
     ``target_ids`` (M,), ``n_frames`` (M,), ``spread_px`` (M,) (the observation's spread,
-    repeated for each of its K points).
+    repeated for each of its K points); ``centroid_uv`` (M, 2) and ``centroid_spread_px``
+    (M,) the intensity centroids beside fitted centres (:class:`Observation`), NaN where an
+    observation has none.
     """
 
     points: np.ndarray
@@ -76,6 +78,15 @@ class SolverArrays:
     target_ids: np.ndarray
     n_frames: np.ndarray
     spread_px: np.ndarray
+    centroid_uv: Optional[np.ndarray] = None
+    centroid_spread_px: Optional[np.ndarray] = None
+
+    def __post_init__(self):
+        m = self.uv.shape[0]
+        if self.centroid_uv is None:
+            self.centroid_uv = np.full((m, 2), np.nan)
+        if self.centroid_spread_px is None:
+            self.centroid_spread_px = np.full(m, np.nan)
 
 
 class SampleStore:
@@ -305,7 +316,7 @@ class SampleStore:
         names = self.camera_names if camera_names is None else tuple(camera_names)
         cam_index = {name: i for i, name in enumerate(names)}
         samples = sorted(self._samples, key=lambda s: s.id)
-        cam, pidx, uv, tid, nfr, spr = [], [], [], [], [], []
+        cam, pidx, uv, tid, nfr, spr, cuv, cspr = [], [], [], [], [], [], [], []
         for i, s in enumerate(samples):
             for name, obs in s.observations.items():
                 c = cam_index.get(name)
@@ -318,6 +329,12 @@ class SampleStore:
                 tid.append(obs.ids)
                 nfr.append(np.full(k, obs.n_frames))
                 spr.append(np.full(k, obs.spread_px))
+                if obs.centroid_uv is None:
+                    cuv.append(np.full((k, 2), np.nan))
+                    cspr.append(np.full(k, np.nan))
+                else:
+                    cuv.append(obs.centroid_uv)
+                    cspr.append(np.full(k, obs.centroid_spread_px))
 
         def cat(parts, dtype, shape=(0,)):
             return np.concatenate(parts).astype(dtype) if parts else np.zeros(shape, dtype)
@@ -329,7 +346,8 @@ class SampleStore:
             camera_names=names,
             camera_index=cat(cam, np.intp), point_index=cat(pidx, np.intp),
             uv=cat(uv, float, (0, 2)), target_ids=cat(tid, np.int64),
-            n_frames=cat(nfr, np.int64), spread_px=cat(spr, float))
+            n_frames=cat(nfr, np.int64), spread_px=cat(spr, float),
+            centroid_uv=cat(cuv, float, (0, 2)), centroid_spread_px=cat(cspr, float))
 
     # -- persistence ----------------------------------------------------------------------
 
@@ -429,7 +447,7 @@ def _arrays_of(samples, names):
     ref = np.full((n, nr, 3), np.nan)
     q = np.full((n, nq), np.nan)
     pose = np.full((n, 4, 4), np.nan)
-    obs_rows, uv, ids = [], [], []
+    obs_rows, uv, ids, cuv = [], [], [], []
     offset = 0
     for i, s in enumerate(samples):
         if s.q is not None:
@@ -442,9 +460,12 @@ def _arrays_of(samples, names):
             obs_rows.append((i, cam_index[name], o.n_frames, o.stamp_ns, offset))
             uv.append(o.uv)
             ids.append(o.ids)
+            cuv.append(np.full(o.uv.shape, np.nan) if o.centroid_uv is None else o.centroid_uv)
             offset += o.uv.shape[0]
     obs = np.array(obs_rows, dtype=np.int64).reshape(-1, 5)
     spread = np.array([o.spread_px for s in samples for o in s.observations.values()])
+    cspread = np.array([np.nan if o.centroid_uv is None else o.centroid_spread_px
+                        for s in samples for o in s.observations.values()])
     return dict(
         sample_id=np.array([s.id for s in samples], dtype=np.int64),
         stamp_ns=np.array([s.stamp_ns for s in samples], dtype=np.int64),
@@ -455,8 +476,9 @@ def _arrays_of(samples, names):
         pose=pose,
         has_reference=np.array([s.reference_points is not None for s in samples], dtype=bool),
         reference_points=ref,
-        obs=obs, obs_spread=spread.reshape(-1),
+        obs=obs, obs_spread=spread.reshape(-1), obs_centroid_spread=cspread.reshape(-1),
         uv=np.concatenate(uv) if uv else np.zeros((0, 2)),
+        centroid_uv=np.concatenate(cuv) if cuv else np.zeros((0, 2)),
         ids=np.concatenate(ids) if ids else np.zeros(0, np.int64))
 
 
@@ -466,12 +488,18 @@ def _samples_of(arrays, names):
     n_points = arrays['uv'].shape[0]
     per_sample = {}
     ends = np.append(obs[1:, 4], n_points)
-    for row, end, spread in zip(obs, ends, arrays['obs_spread']):
+    # Stores written before centroids were kept have neither array.
+    cuv = arrays.get('centroid_uv', np.full((n_points, 2), np.nan))
+    cspread = arrays.get('obs_centroid_spread', np.full(len(obs), np.nan))
+    for row, end, spread, cs in zip(obs, ends, arrays['obs_spread'], cspread):
         i, c, n_frames, stamp, off = (int(v) for v in row)
         end = int(end)
+        has_centroid = bool(np.all(np.isfinite(cuv[off:end])))
         per_sample.setdefault(i, {})[names[c]] = Observation(
             uv=arrays['uv'][off:end], ids=arrays['ids'][off:end], n_frames=n_frames,
-            spread_px=float(spread), stamp_ns=stamp)
+            spread_px=float(spread), stamp_ns=stamp,
+            centroid_uv=cuv[off:end] if has_centroid else None,
+            centroid_spread_px=float(cs) if has_centroid else 0.0)
     n = arrays['sample_id'].shape[0]
     has_ref = arrays.get('has_reference', np.zeros(n, bool))
     out = []

@@ -27,8 +27,11 @@ class Detection:
 
     ``uv`` (2,) pixel position, ``id`` marker id (0 for a sphere, the tag id for ArUco),
     ``quality`` in [0, 1] (detector specific, higher is better; see each detector),
-    ``radius_px`` the apparent size (sphere radius, half the tag diagonal) and, for a tag,
-    ``corners`` (4, 2) its refined corners.
+    ``radius_px`` the apparent size (sphere radius, half the tag diagonal), for a tag
+    ``corners`` (4, 2) its refined corners and, when ``uv`` is a model fit's centre (the
+    shaded sphere), ``centroid`` (2,) the blob's intensity centroid: less noisy than the fit,
+    biased by the light, so that pooling their differences over many views
+    (:mod:`armcal_ros.core.light_pooling`) gets the best of both.
     """
 
     uv: np.ndarray
@@ -36,6 +39,7 @@ class Detection:
     quality: float
     radius_px: float
     corners: Optional[np.ndarray] = None
+    centroid: Optional[np.ndarray] = None
 
 
 class Detector:

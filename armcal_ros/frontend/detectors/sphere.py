@@ -296,13 +296,14 @@ class SphereDetector(Detector):
             best, second, status = chosen, rival / chosen.score, 'tracked_ambiguous'
         if best.touches_edge:
             return None, 'window_edge'
-        uv = best.uv + (x0, y0)
+        uv = centroid = best.uv + (x0, y0)
         if self.centre == 'shaded':
             uv = self._shaded_centre(sub, best, x0, y0)
             if uv is None:
                 return None, 'shaded_fit_failed'
         det = Detection(uv=uv, id=0, quality=float(best.roundness * max(0.0, 1.0 - second)),
-                        radius_px=float(best.radius))
+                        radius_px=float(best.radius),
+                        centroid=centroid if self.centre == 'shaded' else None)
         return det, status
 
     def _shaded_centre(self, sub, cand, x0, y0):

@@ -1,0 +1,143 @@
+"""
+A lit ball's centre from its low-noise centroid and its light shift pooled over many views.
+
+Two centres come out of the shaded-sphere detector for each view m of camera c: the intensity
+centroid ``c_m`` (low noise, but pulled towards the lit side) and the fitted centre ``s_m``
+(unbiased, about twice as noisy: the fit also estimates the light).  Their difference
+``d_m = s_m - c_m`` is the light's shift of the centroid plus the fit's extra noise.  For
+light that is fixed in the cell the shift is a smooth function of where the ball is: it
+depends on the direction to the lamps seen from the camera and on the ball's image size,
+both of which change slowly along the workspace.  So the shift can be pooled over the
+camera's views at nearby places and the centre taken as
+
+    u_m = c_m + f(X_m),    f = the local-linear smooth of the d's over the nominal points X,
+
+which carries the centroid's noise plus the smooth's (small) instead of the fit's.
+
+The smooth at X_m is a weighted least-squares plane through its k nearest views, tricube
+weights over the k-th neighbour's distance (local-linear regression, Cleveland 1979): a plane
+follows a shift that changes along the workspace without the flattening of a local mean.  k
+is chosen per camera by leave-one-out prediction of the d's: the error it measures is the
+smooth's variance plus its bias plus the d's own noise, so the k that minimises it balances
+the first two on the data at hand - a lamp close to the ball (a shift that changes quickly)
+gets a small k, an evenly lit ball (no shift) a large one; one plane and one constant through
+all the camera's views are the smoothest candidates.  Of the k's whose error is within
+one standard error of the least, the largest is taken (the one-standard-error rule, Hastie,
+Tibshirani and Friedman, *The Elements of Statistical Learning*, 7.10).
+
+Assumption: the light does not move with the marker.  An LED whose brightest side turns with
+the tool shifts its centroid with the tool's orientation, which this smooth over positions
+does not see: use the per-view fit (``sphere_centre: shaded``) there.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+#: Neighbourhood sizes tried per camera (views); at most the camera's view count - 1.
+K_GRID = (8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256)
+#: Fewer views than this per camera: nothing to pool over, the fitted centres are kept.
+MIN_VIEWS = 12
+
+
+@dataclass
+class PooledShift:
+    """
+    One camera's pooled light shift.
+
+    ``shift`` (M, 2) the smooth of the d's at each view (px), ``variance`` (M,) its variance
+    per axis (px^2: the squared weights of its equivalent kernel times the d's noise),
+    ``k`` the neighbourhood chosen (M for one plane or constant through all views),
+    ``loo_rms`` its leave-one-out RMS prediction error per axis
+    (px), ``status`` 'ok' or 'too_few' (then ``shift`` is the d's themselves), ``message``.
+    """
+
+    shift: np.ndarray
+    variance: np.ndarray
+    k: int
+    loo_rms: float
+    status: str
+    message: str
+
+
+def _local_linear(points, values, tree, k, leave_out, global_degree=None):
+    """
+    Return (fit (M, 2), kernel_sq (M,)): each view's smooth and its squared weights' sum.
+
+    The local-linear smooth over the k nearest views with tricube weights; with
+    ``global_degree`` 1 or 0 instead a plane or a constant through all views, equally
+    weighted.  ``leave_out`` fits each view without itself (the cross-validation).
+    """
+    m = len(points)
+    if global_degree is None:
+        dist, idx = tree.query(points, k=k + 1)
+        if leave_out:
+            dist, idx = dist[:, 1:], idx[:, 1:]
+        h = np.maximum(dist[:, -1:] * 1.0001, 1e-12)
+        w = (1.0 - (dist / h) ** 3) ** 3
+    else:
+        idx = np.broadcast_to(np.arange(m), (m, m))
+        h = np.full((m, 1), max(float(np.ptp(points, axis=0).max()), 1e-12))
+        w = np.ones((m, m))
+        if leave_out:
+            w = w - np.eye(m)
+    dx = points[idx] - points[:, None, :]                         # (M, k, 3)
+    A = np.concatenate([np.ones(idx.shape + (1,)), dx / h[:, :, None]], axis=2)
+    if global_degree == 0:
+        A = A[:, :, :1]
+    Aw = A * w[:, :, None]
+    N = np.einsum('mka,mkb->mab', Aw, A)
+    # A small ridge on the slopes keeps neighbourhoods on a line or a plane solvable; the
+    # slopes are in units of the neighbourhood's size, so 1e-6 is negligible otherwise.
+    p = A.shape[2]
+    N[:, 1:, 1:] += 1e-6 * np.eye(p - 1) * N[:, :1, :1]
+    # The intercept's row of N^-1 A^T W: the equivalent kernel of the smooth at the view.
+    e0 = np.zeros((m, p, 1))
+    e0[:, 0, 0] = 1.0
+    row = np.linalg.solve(N, e0)[:, :, 0]                         # (M, p)
+    kernel = np.einsum('ma,mka->mk', row, Aw)                     # (M, k)
+    fit = np.einsum('mk,mkc->mc', kernel, values[idx])
+    return fit, np.sum(kernel ** 2, axis=1)
+
+
+def pool_light_shift(points, shifts) -> PooledShift:
+    """
+    Pool one camera's light shifts over its views (module doc).
+
+    ``points`` (M, 3) the views' nominal marker positions (m), ``shifts`` (M, 2) fitted centre
+    minus centroid (px).
+    """
+    points = np.asarray(points, float)
+    shifts = np.asarray(shifts, float)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f'points must have shape (M, 3), got {points.shape}')
+    if shifts.shape != (points.shape[0], 2):
+        raise ValueError(f'shifts must have shape ({points.shape[0]}, 2), got {shifts.shape}')
+    if not (np.all(np.isfinite(points)) and np.all(np.isfinite(shifts))):
+        raise ValueError('points and shifts must be finite')
+    m = len(points)
+    if m < MIN_VIEWS:
+        return PooledShift(shifts.copy(), np.full(m, np.nan), 0, float('nan'), 'too_few',
+                           f'{m} views < {MIN_VIEWS}: the fitted centres are kept')
+    tree = cKDTree(points)
+    # From the roughest smooth to the smoothest: local planes, one plane, one constant.
+    ks = [(k, None) for k in K_GRID if k < m - 1] + [(m - 1, 1), (m - 1, 0)]
+    errors = np.array([np.mean((_local_linear(points, shifts, tree, k, True, g)[0] - shifts)
+                               ** 2, axis=1) for k, g in ks])          # (K, M) per axis
+    best = int(np.argmin(errors.mean(axis=1)))
+    # The one-standard-error rule: the widest neighbourhood whose prediction error is within
+    # one standard error (paired over the views) of the best's.  Under even light the errors
+    # are flat in k, and the minimum alone would be picked by the d's noise.
+    diff = errors - errors[best]
+    within = diff.mean(axis=1) <= diff.std(axis=1) / np.sqrt(m)
+    choice = max(np.flatnonzero(within))
+    (k, degree), err = ks[choice], float(errors[choice].mean())
+    fit, kernel_sq = _local_linear(points, shifts, tree, k, False, degree)
+    # The d's own noise: what the leave-one-out error leaves after the smooth's variance.
+    _, loo_kernel_sq = _local_linear(points, shifts, tree, k, True, degree)
+    noise_var = err / (1.0 + float(np.mean(loo_kernel_sq)))
+    how = {None: f'local planes through {k} neighbouring views', 1: 'one plane',
+           0: 'one constant'}[degree]
+    return PooledShift(fit, kernel_sq * noise_var, k if degree is None else m,
+                       float(np.sqrt(err)), 'ok', f'{how} over {m} views')

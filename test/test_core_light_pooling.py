@@ -1,0 +1,94 @@
+"""Pooling a lit ball's light shift over a camera's views (core/light_pooling.py)."""
+import numpy as np
+import pytest
+
+from armcal_ros.core.light_pooling import MIN_VIEWS, pool_light_shift
+from armcal_ros.engine import pooled_light_arrays
+from armcal_ros.frontend.samples import Observation, Sample
+from armcal_ros.frontend.store import SampleStore
+
+
+def _lamp_shift(points, lamp=(0.0, 0.0, 1.5), radius_px=6.0):
+    """Return a shift like a lamp's: towards its image direction, 0.23 r at most, smooth."""
+    to_lamp = np.asarray(lamp) - points
+    to_lamp /= np.linalg.norm(to_lamp, axis=1, keepdims=True)
+    return 0.23 * radius_px * to_lamp[:, :2] * np.array([1.0, -1.0])
+
+
+def _views(m, seed):
+    rng = np.random.default_rng(seed)
+    return rng.uniform([-0.3, -0.3, 0.2], [0.3, 0.3, 0.7], (m, 3)), rng
+
+
+def test_a_smooth_shift_is_recovered_below_the_noise_of_each_view():
+    points, rng = _views(300, 1)
+    truth = _lamp_shift(points)
+    noise = 0.02
+    d = truth + rng.normal(0, noise, truth.shape)
+    pooled = pool_light_shift(points, d)
+    assert pooled.status == 'ok' and pooled.shift.shape == (300, 2)
+    err = pooled.shift - truth
+    # The shift changes by about 0.5 px over the workspace; the smooth must follow it with
+    # less than half the error of one view, with no bias left.
+    assert np.sqrt(np.mean(err ** 2)) < 0.5 * noise, np.sqrt(np.mean(err ** 2))
+    assert np.all(np.abs(err.mean(axis=0)) < 0.003)
+    # Its stated variance is the error's size (within a factor of 2 either way).
+    ratio = np.mean(err ** 2) / np.mean(pooled.variance)
+    assert 0.25 < ratio < 4.0, ratio
+    assert abs(pooled.loo_rms - noise) < 0.3 * noise
+
+
+def test_no_shift_under_even_light_gives_the_smoothest_fit():
+    points, rng = _views(200, 2)
+    d = rng.normal(0, 0.02, (200, 2))
+    pooled = pool_light_shift(points, d)
+    assert pooled.k == 200, pooled.message              # one plane or one constant
+    assert np.sqrt(np.mean(pooled.shift ** 2)) < 0.006
+
+
+def test_a_lamp_close_to_the_ball_gets_a_smaller_neighbourhood():
+    points, rng = _views(400, 3)
+    noise = rng.normal(0, 0.02, (2, 400, 2))
+    far = pool_light_shift(points, _lamp_shift(points, (0, 0, 3.0)) + noise[0])
+    near = pool_light_shift(points, _lamp_shift(points, (0.05, 0, 0.75)) + noise[1])
+    assert near.k < far.k, (near.message, far.message)
+
+
+def test_few_views_keep_the_fitted_centres_and_bad_input_is_refused():
+    points, rng = _views(MIN_VIEWS - 1, 4)
+    d = rng.normal(0, 0.1, (MIN_VIEWS - 1, 2))
+    pooled = pool_light_shift(points, d)
+    assert pooled.status == 'too_few'
+    np.testing.assert_array_equal(pooled.shift, d)
+    with pytest.raises(ValueError, match='points'):
+        pool_light_shift(points[:, :2], d)
+    with pytest.raises(ValueError, match='shifts'):
+        pool_light_shift(points, d[:-1])
+    d[0, 0] = np.nan
+    with pytest.raises(ValueError, match='finite'):
+        pool_light_shift(points, d)
+
+
+def test_the_engine_moves_centroids_to_the_pooled_centre():
+    points, rng = _views(120, 5)
+    truth_uv = rng.uniform(100, 500, (120, 2))
+    shift = _lamp_shift(points)
+    store = SampleStore(min_sample_spacing=0.0)
+    for X, uv, s in zip(points, truth_uv, shift):
+        centroid = uv - s + rng.normal(0, 0.005, 2)        # biased towards the lamp, low noise
+        fitted = uv + rng.normal(0, 0.03, 2)               # unbiased, noisy
+        store.add(Sample(point_nominal=X, observations={
+            'cam1': Observation(uv=fitted, ids=[0], n_frames=3, spread_px=0.05,
+                                centroid_uv=centroid, centroid_spread_px=0.01),
+            'cam2': Observation(uv=uv + 1.0, ids=[0], n_frames=3, spread_px=0.05)}))
+    a = store.arrays()
+    b, info = pooled_light_arrays(a)
+    assert set(info) == {'cam1'}                           # cam2 has no centroids
+    c1 = a.camera_index == a.camera_names.index('cam1')
+    c2 = ~c1
+    np.testing.assert_array_equal(b.uv[c2], a.uv[c2])
+    err_fitted = np.sqrt(np.mean((a.uv[c1] - truth_uv) ** 2))
+    err_pooled = np.sqrt(np.mean((b.uv[c1] - truth_uv) ** 2))
+    assert err_pooled < 0.5 * err_fitted, (err_pooled, err_fitted)
+    # The spread now says the centroid's scatter plus the smooth's, not the fit's.
+    assert np.all(b.spread_px[c1] >= 0.01) and np.all(b.spread_px[c1] < 0.05)
