@@ -52,9 +52,17 @@ def _add_simulate(p):
                    metavar=('X', 'Y', 'Z'),
                    help='light the marker, a matte ball, by one lamp at X Y Z (m, base frame) '
                         'instead of letting it glow alike from every side')
+    p.add_argument('--led', type=number_arg(float, -1000.0, 1000.0), nargs=3, default=None,
+                   metavar=('AX', 'AY', 'AZ'),
+                   help='make the marker an LED in a diffusing ball pointing along AX AY AZ '
+                        '(the marker link\'s frame): brightest where it points, so the bright '
+                        'side turns with the tool (not with --lamp)')
+    p.add_argument('--led-falloff', type=number_arg(float, 0.1, 100.0), default=1.0,
+                   help='with --led: the exponent m of its beam, cos^m of the angle off its '
+                        'axis (1: a Lambertian LED; larger: narrower; default 1)')
     p.add_argument('--ambient', type=number_arg(float, 0.0, 1.0), default=0.25,
-                   help='with --lamp: the fraction of the full brightness the ball\'s unlit '
-                        'side keeps (default 0.25)')
+                   help='with --lamp or --led: the fraction of the full brightness the '
+                        'ball\'s unlit side keeps (default 0.25)')
     p.add_argument('--stamp-latency', action='append', default=[], metavar='CAM:SECONDS',
                    help='camera CAM\'s driver stamps each image SECONDS after its exposure '
                         '(repeatable; the ground truth keeps the exposure times)')
@@ -141,9 +149,18 @@ def _run_simulate(args):
                     for text in texts)
     if changes:
         settings = dataclasses.replace(settings, camera_changes=changes)
+    if args.lamp is not None and args.led is not None:
+        raise ValueError('--lamp and --led are two kinds of marker: give one')
     if args.lamp is not None:
         settings = dataclasses.replace(settings, sensor=dataclasses.replace(
             settings.sensor, lamp=tuple(args.lamp), ambient=args.ambient))
+    if args.led is not None:
+        try:
+            settings = dataclasses.replace(settings, sensor=dataclasses.replace(
+                settings.sensor, led_axis=tuple(args.led), led_falloff=args.led_falloff,
+                ambient=args.ambient))
+        except ValueError as exc:
+            raise ValueError(f'--led: {exc}') from exc
     latency = [0.0] * len(settings.camera_names)
     for text in args.stamp_latency:
         cam, _, value = text.rpartition(':')

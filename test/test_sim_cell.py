@@ -216,3 +216,41 @@ def test_a_lamp_shades_the_ball_and_moves_its_centroid_towards_the_light(cell):
         SensorModel(ambient=1.5)
     with pytest.raises(ValueError, match='lamp'):
         SensorModel(lamp=(0.0, 1.0))
+
+
+def test_an_led_is_brightest_where_the_tool_points_and_turns_with_it(cell):
+    from dataclasses import replace
+    f = cell.frames
+    i = int(np.flatnonzero(f.occlusion == OCCLUSION_NONE)[3])
+    cam = cell.cameras[int(f.camera[i])]
+    X = f.marker[i]
+    radius = cell.settings.marker_radius
+    sensor = replace(cell.settings.sensor, led_axis=(0.0, 0.0, 2.0))
+    assert sensor.led_axis == (0.0, 0.0, 1.0)                 # normalised
+    # The axis is the tool's z axis under the arm's true joint angles and geometry.
+    a = cell.led_axis(i, sensor)
+    t = (int(f.exposure_ns[i]) - cell.start_ns) * 1e-9
+    q = cell.robot.true_joint_angles(cell.trajectory.positions(np.array([t])))
+    np.testing.assert_allclose(a, cell.robot.chain.fk_pose(q, cell.robot.errors)[0, :3, 2])
+    assert cell.led_axis(i) is None                           # no LED in the cell's sensor
+
+    def centroid(axis, falloff=1.0):
+        s = replace(sensor, led_falloff=falloff)
+        u0, v0, patch = marker_signal(cam, X[None], radius, s, 0.6, led_axis=axis)
+        vv, uu = np.mgrid[v0:v0 + patch.shape[0], u0:u0 + patch.shape[1]]
+        return np.array([(uu * patch).sum(), (vv * patch).sum()]) / patch.sum()
+    # Pointing along the camera's +x axis (image right), then -y (image up): the centroid
+    # follows, by a fraction of the image radius.  A narrower beam lights less of the ball
+    # beside the ambient glow, so it pulls less.
+    c0 = cam.project(X[None])[0]
+    r_px = cam.fx * radius / cam.to_camera(X[None])[0, 2]
+    right, up = centroid(cam.rotation[0]) - c0, centroid(-cam.rotation[1]) - c0
+    assert 0.1 * r_px < right[0] < 0.6 * r_px and abs(right[1]) < 0.05 * r_px
+    assert 0.1 * r_px < -up[1] < 0.6 * r_px and abs(up[0]) < 0.05 * r_px
+    assert 0.0 < centroid(cam.rotation[0], 4.0)[0] - c0[0] < right[0]
+    with pytest.raises(ValueError, match='led_axis'):
+        SensorModel(led_axis=(0.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match='give one'):
+        SensorModel(led_axis=(0.0, 0.0, 1.0), lamp=(1.0, 1.0, 1.0))
+    with pytest.raises(ValueError, match='led_falloff'):
+        SensorModel(led_falloff=0.0)

@@ -390,7 +390,7 @@ class SimResult:
             blur = np.hypot(sensor.defocus_sigma,
                             sensor.defocus_slope * (depth - self._focus(cam)))
             got = marker_signal(cam, centres, self.settings.marker_radius, sensor,
-                                0.0 if clean else blur)
+                                0.0 if clean else blur, led_axis=self.led_axis(i, sensor))
             if got is not None:
                 patches.append(got)
         if not clean:
@@ -402,6 +402,21 @@ class SimResult:
         if not clean and (sensor.clutter_level > 0 or sensor.clutter_spots > 0):
             background = self._clutter(j, sensor, epoch)
         return expose(cam, patches, rng, sensor, encoding, background)
+
+    def led_axis(self, i, sensor: Optional[SensorModel] = None):
+        """
+        Return the world direction an LED marker points at frame ``i`` (None without one).
+
+        ``sensor.led_axis`` turned by the marker link's true orientation at mid-exposure
+        (the arm's readings through its true joint angles and geometry).
+        """
+        sensor = sensor or self.settings.sensor
+        if sensor.led_axis is None:
+            return None
+        t = (int(self.frames.exposure_ns[i]) - START_TIME_NS) * 1e-9
+        q = self.robot.true_joint_angles(self.trajectory.positions(np.array([t])))
+        R = self.robot.chain.fk_pose(q, self.robot.errors)[0, :3, :3]
+        return R @ np.asarray(sensor.led_axis, float)
 
     def _clutter(self, j, sensor, epoch=0):
         """

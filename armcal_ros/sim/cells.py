@@ -88,7 +88,8 @@ def cell_parameters(settings: SimSettings, compressed=None, noise_model='auto') 
 
     Only what describes the cell: URDF, marker link, joint-state and image topics, camera
     names, and when the ball is lit by a lamp, where the lamp hangs and the ball's size (what
-    a user of that cell would know); everything else keeps the node's defaults.
+    a user of that cell would know), for an LED the shaded-ball centre; everything else keeps
+    the node's defaults.
     """
     urdf = settings.urdf_path or default_urdf_path()
     names = list(settings.camera_names)
@@ -101,6 +102,9 @@ def cell_parameters(settings: SimSettings, compressed=None, noise_model='auto') 
         out.update(marker_lamp=[float(v) for v in settings.sensor.lamp],
                    marker_ambient=float(settings.sensor.ambient),
                    marker_radius=float(settings.marker_radius))
+    if settings.sensor.led_axis is not None:
+        # An LED's bright side turns with the tool: no lamp to give, the per-view fit's centre.
+        out.update(sphere_centre='shaded')
     return out
 
 

@@ -51,6 +51,10 @@ shaded surfaces, boxes, discs and bars of random brightness around that level, w
 edges; ``clutter_spots`` adds static round bright spots the size and brightness of the
 marker (indicator lamps, polished bolt heads) - look-alikes only their stillness gives away.
 Shot and read noise then apply to every pixel.
+
+An LED in a diffusing ball (``SensorModel.led_axis``) is brightest where the LED points, with
+an angular fall-off; the bright side turns with the tool, so its centroid's offset depends on
+the tool's orientation as well as on the camera.
 """
 
 from dataclasses import dataclass
@@ -87,6 +91,14 @@ class SensorModel:
     #: side still has.  Which side is bright depends on where each camera stands.
     lamp: Optional[tuple] = None
     ambient: float = 0.25
+    #: Or an LED in a diffusing ball: the unit vector (marker link frame) the LED points
+    #: along.  Its light reaches the inside of the diffuser as cos^m of the angle off that
+    #: axis (``led_falloff`` m: 1 for a Lambertian LED, larger for a narrower beam) and the
+    #: diffuser re-emits it, so the ball's surface at normal n is ``ambient`` +
+    #: (1 - ``ambient``) max(0, n . a)^m: brightest where the LED points, and that side turns
+    #: with the tool.
+    led_axis: Optional[tuple] = None
+    led_falloff: float = 1.0
 
     def __post_init__(self):
         for name in ('peak', 'gain', 'exposure'):
@@ -105,6 +117,17 @@ class SensorModel:
             if lamp.shape != (3,) or not np.all(np.isfinite(lamp)):
                 raise ValueError(f'lamp must be 3 finite numbers (m, base frame), got {self.lamp}')
             self.lamp = tuple(float(v) for v in lamp)
+        if self.led_axis is not None:
+            axis = np.asarray(self.led_axis, float)
+            if axis.shape != (3,) or not np.all(np.isfinite(axis)) or \
+                    not np.linalg.norm(axis) > 0:
+                raise ValueError(f'led_axis must be 3 finite numbers, not all 0, got '
+                                 f'{self.led_axis}')
+            if self.lamp is not None:
+                raise ValueError('lamp and led_axis are two kinds of marker: give one')
+            self.led_axis = tuple(float(v) for v in axis / np.linalg.norm(axis))
+        if not (np.isfinite(self.led_falloff) and self.led_falloff > 0):
+            raise ValueError(f'led_falloff must be > 0, got {self.led_falloff}')
 
 
 def sphere_image_offset(cam, X, radius):
@@ -124,7 +147,7 @@ def sphere_image_offset(cam, X, radius):
 
 
 def sphere_coverage(cam, centres, radius, u0, v0, width, height, supersample=8, lamp=None,
-                    ambient=0.25):
+                    ambient=0.25, led_axis=None, led_falloff=1.0):
     """
     Return the fraction of each pixel of a window covered by the image of a sphere.
 
@@ -137,7 +160,9 @@ def sphere_coverage(cam, centres, radius, u0, v0, width, height, supersample=8, 
     With a ``lamp`` (world position) each covered sub-pixel is weighted by the Lambertian
     shading of the surface point its ray meets first, ambient + (1 - ambient) max(0, n . l):
     P = t d with t = (d.C - sqrt((d.C)^2 - |d|^2 (|C|^2 - r^2))) / |d|^2, n = (P - C) / r,
-    l the unit vector from P to the lamp (camera frame).
+    l the unit vector from P to the lamp (camera frame).  With ``led_axis`` (a world-frame
+    unit vector a) instead, ambient + (1 - ambient) max(0, n . a)^``led_falloff``
+    (:class:`SensorModel`).
     """
     S = int(supersample)
     # Undistort the pixel corners exactly, then interpolate bilinearly inside each pixel: the
@@ -161,10 +186,11 @@ def sphere_coverage(cam, centres, radius, u0, v0, width, height, supersample=8, 
     hits = np.zeros(len(d))
     C_all = cam.to_camera(np.atleast_2d(np.asarray(centres, float)))
     lamp_c = None if lamp is None else cam.to_camera(np.asarray(lamp, float)[None])[0]
+    axis_c = None if led_axis is None else cam.rotation @ np.asarray(led_axis, float)
     for C in C_all:
         cross = np.cross(d, C)
         inside = (np.einsum('ij,ij->i', cross, cross) <= radius ** 2 * dd) & (d @ C > 0)
-        if lamp_c is None:
+        if lamp_c is None and axis_c is None:
             hits += inside
             continue
         di, ddi = d[inside], dd[inside]
@@ -172,6 +198,10 @@ def sphere_coverage(cam, centres, radius, u0, v0, width, height, supersample=8, 
         t = (dc - np.sqrt(np.maximum(dc * dc - ddi * (C @ C - radius ** 2), 0.0))) / ddi
         P = di * t[:, None]
         n = (P - C) / radius
+        if axis_c is not None:
+            cos = np.maximum(n @ axis_c, 0.0)
+            hits[inside] += ambient + (1.0 - ambient) * cos ** led_falloff
+            continue
         toward = lamp_c - P
         toward /= np.linalg.norm(toward, axis=1, keepdims=True)
         shade = ambient + (1.0 - ambient) * np.maximum(np.einsum('ij,ij->i', n, toward), 0.0)
@@ -187,12 +217,14 @@ def vignetting(cam, u, v):
     return 1.0 / (1.0 + x * x + y * y) ** 2
 
 
-def marker_signal(cam, centres, radius, sensor: SensorModel, blur_sigma, margin=3):
+def marker_signal(cam, centres, radius, sensor: SensorModel, blur_sigma, margin=3,
+                  led_axis=None):
     """
     Noise-free marker signal in DN on a window around the marker.
 
     ``centres`` (K, 3) are the sphere centre's world positions at instants spread over the
-    exposure (motion blur is their average).  Returns (u0, v0, patch) with patch (h, w) in
+    exposure (motion blur is their average); ``led_axis`` the world direction the LED points
+    in this frame (with ``sensor.led_axis``).  Returns (u0, v0, patch) with patch (h, w) in
     DN, or None when the window misses the image.
     """
     centres = np.atleast_2d(np.asarray(centres, float))
@@ -210,7 +242,8 @@ def marker_signal(cam, centres, radius, sensor: SensorModel, blur_sigma, margin=
         return None
     w, h = u1 - u0, v1 - v0
     signal = sensor.peak * sphere_coverage(cam, centres, radius, u0, v0, w, h,
-                                           sensor.supersample, sensor.lamp, sensor.ambient)
+                                           sensor.supersample, sensor.lamp, sensor.ambient,
+                                           led_axis, sensor.led_falloff)
     if sensor.vignetting:
         vv, uu = np.mgrid[v0:v1, u0:u1]
         signal *= vignetting(cam, uu, vv)
