@@ -80,6 +80,29 @@ def _add_simulate(p):
                    metavar=('MM', 'HZ', 'TAU'),
                    help='after each stop the structure rings down: MM mm at HZ Hz, decaying '
                         'with time constant TAU s (e.g. 0.1 10 0.1)')
+    p.add_argument('--read-noise', type=number_arg(float, 0.0, 20.0), default=None,
+                   metavar='DN', help='the sensor\'s read noise (DN, 8-bit; default the '
+                                      'cell\'s 0.06)')
+    p.add_argument('--clutter', type=number_arg(float, 0.0, 200.0), default=None, metavar='DN',
+                   help='a textured static scene behind the marker, mean brightness DN '
+                        '(default the cell\'s; 0: black)')
+    p.add_argument('--exposure-steps', type=number_arg(float, 0.01, 1000.0), nargs=2,
+                   default=None, metavar=('PERIOD', 'F'),
+                   help='auto-exposure: every PERIOD s each camera\'s brightness is set anew, '
+                        'a factor in [1/F, F]')
+    p.add_argument('--lens-k3', type=number_arg(float, -0.99, 0.99), default=0.0, metavar='K3',
+                   help='every camera\'s k3 (x 0.8-1.2 per camera; default 0)')
+    p.add_argument('--lens-tangential', type=number_arg(float, 0.0, 0.0199), default=0.0,
+                   metavar='P', help='std of every camera\'s p1, p2 (default 0: 5e-4)')
+    p.add_argument('--rolling-shutter', type=number_arg(float, 0.0, 0.199), default=0.0,
+                   metavar='S', help='readout time (s) of a rolling shutter, first row to last '
+                                     '(default 0: global shutter)')
+    p.add_argument('--pause', type=number_arg(float, 0.05, 60.0), nargs=2, default=None,
+                   metavar=('MIN', 'MAX'),
+                   help='the operator\'s stops last MIN to MAX s (default the cell\'s '
+                        '0.4 1.2)')
+    p.add_argument('--joint-rate', type=number_arg(float, 1.0, 10000.0), default=None,
+                   metavar='HZ', help='joint states per second (default the cell\'s 200)')
     p.add_argument('--frame-id-format', default='{camera}_optical_frame',
                    help='the images\' header.frame_id, {camera} standing for the camera\'s name '
                         '(e.g. {camera}_color_optical_frame as a RealSense driver names it)')
@@ -182,7 +205,21 @@ def _run_simulate(args):
         settings, stamp_latency=tuple(latency) if args.stamp_latency else (),
         joint_jitter=args.joint_jitter, joint_drop=args.joint_drop,
         backlash_deg=args.backlash, repeatability_mm=args.repeatability,
-        settle_mm=settle[0], settle_hz=settle[1], settle_tau=settle[2])
+        settle_mm=settle[0], settle_hz=settle[1], settle_tau=settle[2],
+        rolling_shutter=args.rolling_shutter, lens_k3=args.lens_k3,
+        lens_tangential=args.lens_tangential,
+        dwell=tuple(args.pause) if args.pause else settings.dwell,
+        joint_rate=args.joint_rate or settings.joint_rate)
+    sensor = {}
+    if args.read_noise is not None:
+        sensor['read_noise'] = args.read_noise
+    if args.clutter is not None:
+        sensor['clutter_level'] = args.clutter
+    if args.exposure_steps is not None:
+        sensor['exposure_steps'] = tuple(args.exposure_steps)
+    if sensor:
+        settings = dataclasses.replace(settings, sensor=dataclasses.replace(settings.sensor,
+                                                                            **sensor))
     result = simulate_cell(scenario, args.seed, args.duration, settings)
 
     live = not args.quiet and sys.stderr.isatty()   # '\r' updates only on a terminal

@@ -208,6 +208,12 @@ class SimSettings:
     settle_mm: float = 0.0                  # ring-down amplitude after each stop
     settle_hz: float = 10.0
     settle_tau: float = 0.1                 # s
+    #: A rolling shutter's readout (s, first row to last); 0: global shutter.
+    rolling_shutter: float = 0.0
+    #: Lenses (each camera's own stream, others' draws unchanged): k3 of every camera
+    #: (x U(0.8, 1.2)), and the std of p1, p2 (0: the default 5e-4).
+    lens_k3: float = 0.0
+    lens_tangential: float = 0.0
 
     def __post_init__(self):
         if isinstance(self.sensor, dict):
@@ -242,6 +248,15 @@ class SimSettings:
             raise ValueError(f'joint_jitter must be >= 0 (s), got {self.joint_jitter}')
         if not 0.0 <= self.joint_drop < 1.0:
             raise ValueError(f'joint_drop must be in [0, 1), got {self.joint_drop}')
+        if not (np.isfinite(self.rolling_shutter) and 0.0 <= self.rolling_shutter < 0.2):
+            raise ValueError(f'rolling_shutter must be in [0, 0.2) s, got {self.rolling_shutter}')
+        if not (np.isfinite(self.lens_k3) and abs(self.lens_k3) < 1.0):
+            raise ValueError(f'lens_k3 must be within (-1, 1), got {self.lens_k3}')
+        if not (np.isfinite(self.lens_tangential) and 0.0 <= self.lens_tangential < 0.02):
+            raise ValueError(f'lens_tangential must be in [0, 0.02), got {self.lens_tangential}')
+        if not (len(self.dwell) == 2 and 0.0 < self.dwell[0] <= self.dwell[1]):
+            raise ValueError(f'dwell must be (shortest, longest) s with 0 < shortest <= longest, '
+                             f'got {self.dwell}')
 
     def to_dict(self):
         """Plain dictionary (YAML-safe); ``camera_changes`` only when there are some."""
@@ -401,7 +416,27 @@ class SimResult:
         background = None
         if not clean and (sensor.clutter_level > 0 or sensor.clutter_spots > 0):
             background = self._clutter(j, sensor, epoch)
+        gain = 1.0 if clean else self.exposure_factor(i, sensor)
+        if gain != 1.0:
+            patches = [(u0, v0, gain * p) for u0, v0, p in patches]
+            background = None if background is None else gain * background
         return expose(cam, patches, rng, sensor, encoding, background)
+
+    def exposure_factor(self, i, sensor: Optional[SensorModel] = None):
+        """
+        Return frame ``i``'s auto-exposure factor (1 without ``sensor.exposure_steps``).
+
+        Step k = floor(t / period) of camera j draws log-uniform in [1/F, F] from its own
+        stream ``default_rng([seed, 3001, j, k])``.
+        """
+        sensor = sensor or self.settings.sensor
+        if not sensor.exposure_steps:
+            return 1.0
+        period, largest = sensor.exposure_steps
+        t = (int(self.frames.exposure_ns[i]) - START_TIME_NS) * 1e-9
+        step = np.random.default_rng([self.seed, 3001, int(self.frames.camera[i]),
+                                      int(t // period)])
+        return float(np.exp(step.uniform(-1.0, 1.0) * np.log(largest)))
 
     def led_axis(self, i, sensor: Optional[SensorModel] = None):
         """
@@ -641,6 +676,14 @@ def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, ch
     wmin, wmax = np.asarray(s.workspace_min, float), np.asarray(s.workspace_max, float)
     point = np.asarray(s.marker_offset, float)
     cams = place_cameras(s, rng)
+    if s.lens_k3 or s.lens_tangential:
+        for j, cam in enumerate(cams):
+            lens = np.random.default_rng([seed, 6007, j])
+            cam.dist = np.array(cam.dist, float)
+            if s.lens_k3:
+                cam.dist[4] = s.lens_k3 * lens.uniform(0.8, 1.2)
+            if s.lens_tangential:
+                cam.dist[2:4] = lens.normal(0.0, s.lens_tangential, 2)
 
     def valid(q, need=len(cams)):
         q = np.atleast_2d(q)
@@ -739,35 +782,52 @@ def simulate_cell(scenario='geometric', seed=0, duration=None, settings=None, ch
     exposure_ns = to_ns(t_exp)
     epochs, change_log = camera_epochs(cams, s.camera_changes, seed)
 
-    t_all = (t_exp[:, None] + offsets[None, :]).reshape(-1)
-    q_all = traj.positions(t_all)
-    q_mid = traj.positions(t_exp)
     effects = arm_effects(traj, s.backlash_deg, s.repeatability_mm, s.settle_mm, s.settle_hz,
                           s.settle_tau, seed)
-    if effects is None:
-        x_all = robot.marker(q_all).reshape(len(t_exp), K, 3)
-        x_mid = robot.marker(q_mid)
-    else:
+
+    def markers(t_mid):
+        """Return (x_all (F, K, 3), x_mid (F, 3), q_mid) of exposures centred at t_mid."""
+        t_all = (t_mid[:, None] + offsets[None, :]).reshape(-1)
+        q_all, q_mid = traj.positions(t_all), traj.positions(t_mid)
+        if effects is None:
+            return robot.marker(q_all).reshape(len(t_mid), K, 3), robot.marker(q_mid), q_mid
         x_all = (robot.marker(effects.link_joints(q_all, t_all)) +
-                 effects.displacement(t_all)).reshape(len(t_exp), K, 3)
-        x_mid = robot.marker(effects.link_joints(q_mid, t_exp)) + effects.displacement(t_exp)
-    uv = np.zeros((len(t_exp), 2))
-    occ = np.zeros(len(t_exp), np.int8)
-    for j in range(len(cams)):
-        starts = np.array([start for start, _ in epochs[j]], np.int64)
-        which = np.maximum(np.searchsorted(starts, exposure_ns, side='right') - 1, 0)
-        for e, (_, cam) in enumerate(epochs[j]):
-            m = (cam_idx == j) & (which == e)
-            if not np.any(m):
-                continue
-            uv[m] = cam.project(x_mid[m])
-            out = ~cam.in_front(x_mid[m]) | (uv[m, 0] < -0.5) | (uv[m, 1] < -0.5) \
-                | (uv[m, 0] > cam.width - 0.5) | (uv[m, 1] > cam.height - 0.5)
-            by_link = link_occluded(chain, q_mid[m], robot.nominal_marker(q_mid[m]),
-                                    cam.center, s.link_radius, s.occlusion_clearance)
-            code = np.where(hidden[m], OCCLUSION_RANDOM, OCCLUSION_NONE)
-            code = np.where(by_link, OCCLUSION_LINK, code)
-            occ[m] = np.where(out, OUTSIDE_IMAGE, code)
+                 effects.displacement(t_all)).reshape(len(t_mid), K, 3)
+        x_mid = robot.marker(effects.link_joints(q_mid, t_mid)) + effects.displacement(t_mid)
+        return x_all, x_mid, q_mid
+
+    def project(x_mid, q_mid):
+        """Return (uv, occlusion codes) of every frame's marker in its camera's epoch."""
+        uv = np.zeros((len(x_mid), 2))
+        occ = np.zeros(len(x_mid), np.int8)
+        for j in range(len(cams)):
+            starts = np.array([start for start, _ in epochs[j]], np.int64)
+            which = np.maximum(np.searchsorted(starts, exposure_ns, side='right') - 1, 0)
+            for e, (_, cam) in enumerate(epochs[j]):
+                m = (cam_idx == j) & (which == e)
+                if not np.any(m):
+                    continue
+                uv[m] = cam.project(x_mid[m])
+                out = ~cam.in_front(x_mid[m]) | (uv[m, 0] < -0.5) | (uv[m, 1] < -0.5) \
+                    | (uv[m, 0] > cam.width - 0.5) | (uv[m, 1] > cam.height - 0.5)
+                by_link = link_occluded(chain, q_mid[m], robot.nominal_marker(q_mid[m]),
+                                        cam.center, s.link_radius, s.occlusion_clearance)
+                code = np.where(hidden[m], OCCLUSION_RANDOM, OCCLUSION_NONE)
+                code = np.where(by_link, OCCLUSION_LINK, code)
+                occ[m] = np.where(out, OUTSIDE_IMAGE, code)
+        return uv, occ
+
+    x_all, x_mid, q_mid = markers(t_exp)
+    uv, occ = project(x_mid, q_mid)
+    if s.rolling_shutter > 0.0:
+        # Row v is exposed (v / (H - 1) - 1/2) x readout after the frame's middle row: the
+        # marker is where the arm was when its own row was read (two passes: the row depends
+        # on where the marker is, by a fraction of a pixel at the second).
+        height = np.array([c.height for c in cams], float)[cam_idx]
+        for _ in range(2):
+            row = np.clip(uv[:, 1], 0.0, height - 1.0) / (height - 1.0) - 0.5
+            x_all, x_mid, q_mid = markers(t_exp + row * s.rolling_shutter)
+            uv, occ = project(x_mid, q_mid)
     frames = FrameTruth(cam_idx, to_ns(stamp), exposure_ns, to_ns(log), x_mid, uv, occ, x_all)
 
     spans = traj.dwells()

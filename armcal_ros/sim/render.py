@@ -99,6 +99,10 @@ class SensorModel:
     #: with the tool.
     led_axis: Optional[tuple] = None
     led_falloff: float = 1.0
+    #: Auto-exposure in steps: (period s, largest factor F): every period each camera's
+    #: exposure (the marker's and the scene's brightness) is set anew to a factor in
+    #: [1/F, F], log-uniform; () keeps it fixed.
+    exposure_steps: tuple = ()
 
     def __post_init__(self):
         for name in ('peak', 'gain', 'exposure'):
@@ -128,6 +132,12 @@ class SensorModel:
             self.led_axis = tuple(float(v) for v in axis / np.linalg.norm(axis))
         if not (np.isfinite(self.led_falloff) and self.led_falloff > 0):
             raise ValueError(f'led_falloff must be > 0, got {self.led_falloff}')
+        if self.exposure_steps:
+            steps = tuple(float(v) for v in self.exposure_steps)
+            if len(steps) != 2 or not (steps[0] > 0 and 1.0 <= steps[1] <= 10.0):
+                raise ValueError(f'exposure_steps must be (period s > 0, largest factor in '
+                                 f'[1, 10]), got {self.exposure_steps}')
+            self.exposure_steps = steps
 
 
 def sphere_image_offset(cam, X, radius):
