@@ -28,7 +28,7 @@ from typing import Callable, Dict, Iterator, List, Optional
 import numpy as np
 
 from armcal_ros.change_tracking import ChangeTracker
-from armcal_ros.compose import build_engine, build_pipeline
+from armcal_ros.compose import build_detectors, build_engine, build_pipeline
 from armcal_ros.core.target import pose_vector
 from armcal_ros.engine import SolveOutcome
 from armcal_ros.frontend.collector import SampleCollector, why_few_samples
@@ -400,7 +400,12 @@ def _measure_latency(recording, front, engine, outcome, settings):
         return None
     T = engine.T_link_target
     offset = settings.robot.marker_offset if T is None else np.asarray(T)[:3, 3]
-    return measure_latencies(recording, settings, front.chain, offset, outcome.calibration)
+    # A ball blurred by motion is not the shaded-ball model, but its intensity centroid is
+    # where it was at mid-exposure; a tag is timed by its centre.
+    point_only = replace(settings, detector=replace(settings.detector, sphere_centre='centroid'),
+                         target=replace(settings.target, aruco_size=0.0))
+    detectors = build_detectors(point_only, list(outcome.calibration.cameras))
+    return measure_latencies(recording, detectors, front.chain, offset, outcome.calibration)
 
 
 def _latencies_to_apply(estimates, settings):

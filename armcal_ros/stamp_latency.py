@@ -16,7 +16,6 @@ import numpy as np
 
 from armcal_ros.core.latency import estimate_latency, LatencyEstimate
 from armcal_ros.frontend.image_decode import decode_image_msg
-from armcal_ros.frontend.detectors import make_detector
 
 #: Frames per camera timed at most (spread over the recording): with image speeds of ~100
 #: px/s and ~0.3 px of detection noise in motion, 200 frames give ~0.1 ms.
@@ -29,31 +28,19 @@ MIN_IMAGE_SPEED = 50.0
 MIN_SPACING_S = 0.05
 
 
-def _detectors(settings, cameras):
-    det, kind = settings.detector, settings.target.marker_type
-    if kind == 'sphere':
-        return {c: make_detector('sphere', min_radius_px=det.sphere_min_radius_px,
-                                 max_radius_px=det.sphere_max_radius_px,
-                                 static_scene=det.sphere_static_scene, centre='centroid')
-                for c in cameras}
-    if kind == 'aruco':
-        return {c: make_detector('aruco', dictionary=det.aruco_dictionary,
-                                 marker_id=det.aruco_id, corners=False) for c in cameras}
-    return None
-
-
-def measure_latencies(recording, settings, chain, marker_offset, calibration,
+def measure_latencies(recording, detectors, chain, marker_offset, calibration,
                       bounds=(-0.1, 0.25)) -> Dict[str, LatencyEstimate]:
     """
     Return {camera: LatencyEstimate} for a recording (offline.Recording) and its calibration.
 
-    ``chain`` the robot's KinematicChain, ``marker_offset`` (3,) the marker's place on its link
-    (the calibration's estimate where it made one), ``calibration`` a core Calibration.
-    Cameras without enough motion in view get a status saying so; {} for boards and pose input.
+    ``detectors`` {camera: Detector} of the marker's point (an intensity centroid for a
+    sphere, a tag's centre: module doc), ``chain`` the robot's KinematicChain,
+    ``marker_offset`` (3,) the marker's place on its link (the calibration's estimate where it
+    made one), ``calibration`` a core Calibration.  Cameras without enough motion in view get
+    a status saying so; {} without detectors or a chain.
     """
-    cameras = {n: c.camera for n, c in calibration.cameras.items()}
-    detectors = _detectors(settings, cameras) if chain is not None else None
-    if not detectors:
+    cameras = {n: c.camera for n, c in calibration.cameras.items() if n in (detectors or {})}
+    if not detectors or chain is None or not cameras:
         return {}
     names = list(chain.joint_names)
     offset = np.asarray(marker_offset, float).reshape(3)
