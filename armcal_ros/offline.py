@@ -517,7 +517,12 @@ def make_report(settings: Settings, engine, outcome, front: FrontEnd, timings):
         front_end=dict(front.counts), lost_messages=dict(front.lost), warnings=front.warnings,
         timings=timings,
         stages=[list(s) for s in (outcome.result.stages if outcome.result else [])],
-        changes=_changes_report(engine, front))
+        changes=_changes_report(engine, front),
+        light_pooling=({name: dict(status=p.status, message=p.message, views=int(len(p.shift)),
+                                   loo_rms_px=(p.loo_rms if math.isfinite(p.loo_rms) else None),
+                                   mean_shift_px=[float(v) for v in p.shift.mean(axis=0)])
+                        for name, p in engine.light_pooling.items()}
+                       if engine.settings.pool_light_shift else None))
 
 
 def _changes_report(engine, front):

@@ -8,8 +8,11 @@ file gives it), the pipeline removes each view's offset and must calibrate as we
 uniform light: here the triangulated shape error within 2 x that of the same cell lit
 uniformly, and at most half that of the uncorrected run (measured on this 90 s recording:
 0.023 mm corrected, 0.021 mm uniform, 0.084 mm uncorrected).  The detector's shaded-ball fit
-(``sphere_centre: shaded``) must do the same without the lamp.
+(``sphere_centre: shaded``) must do the same without the lamp, and so must the centroids with
+the light's shift pooled over each camera's views (``shaded_pooled``).
 """
+import json
+
 import pytest
 import yaml
 
@@ -41,6 +44,9 @@ def test_a_lit_ball_is_corrected_to_the_accuracy_of_uniform_light(tmp_path):
     p['sphere_centre'] = 'shaded'
     shaded_params = tmp_path / 'shaded.yaml'
     shaded_params.write_text(yaml.safe_dump(doc))
+    p['sphere_centre'] = 'shaded_pooled'
+    pooled_params = tmp_path / 'pooled.yaml'
+    pooled_params.write_text(yaml.safe_dump(doc))
     corrected = _score(lit, params, tmp_path / 'corrected')
     uncorrected = _score(lit, blind, tmp_path / 'uncorrected')
     shaded = _score(lit, shaded_params, tmp_path / 'shaded')
@@ -52,3 +58,11 @@ def test_a_lit_ball_is_corrected_to_the_accuracy_of_uniform_light(tmp_path):
     assert shaded.shape_mm < 2.0 * reference.shape_mm + 0.005, (shaded, reference)
     assert shaded.shape_mm < 0.5 * uncorrected.shape_mm, (shaded, uncorrected)
     assert shaded.absolute_mm < uncorrected.absolute_mm
+    # The shift pooled over each camera's views: as good, and the report says how it pooled.
+    pooled = _score(lit, pooled_params, tmp_path / 'pooled')
+    assert pooled.shape_mm < 2.0 * reference.shape_mm + 0.005, (pooled, reference)
+    assert pooled.shape_mm < 0.5 * uncorrected.shape_mm, (pooled, uncorrected)
+    report = json.loads((tmp_path / 'pooled' / 'report.json').read_text())
+    for cam, how in report['light_pooling'].items():
+        assert how['status'] == 'ok' and how['views'] > 30, (cam, how)
+        assert 0.2 < abs(how['mean_shift_px'][1]) < 1.0     # the lamp above pulls the centroid
