@@ -83,8 +83,9 @@ class SphereDetector(Detector):
     the centroid moves towards the lit side by a fraction of the radius (0.4-0.7 px measured,
     docs/BENCHMARKS.md *realism*), at the price of about twice the centroid's noise on an
     evenly lit ball and ~1-2 ms per frame (the front end detects only still frames: a
-    motion-blurred ball is not the model).  Each fit starts from the previous frame's (a
-    dwell's frames converge in two or three iterations).  A fit that fails gives no detection
+    motion-blurred ball is not the model).  Each fit starts from the previous frame's when the
+    ball has not moved (a dwell's frames converge in two or three iterations), from six light
+    directions otherwise.  A fit that fails gives no detection
     (``last_status = 'shaded_fit_failed'``): a centroid in its place would carry the bias.
 
     Static scene (``static_scene``, on by default): a camera exposed for the cell rather than
@@ -108,10 +109,12 @@ class SphereDetector(Detector):
 
     #: How the centre is measured (class docstring).
     CENTRES = ('centroid', 'shaded')
-    #: A fit starts from the previous fit (its centre offset, shading and blur; its radius
-    #: too when the centroid moved less than this, px); from several lights when there is none
-    #: or that start fails.
-    WARM_START_PX = 5.0
+    #: A fit starts from the previous fit (its centre offset, radius, shading and blur) when
+    #: the blob's centroid moved less than this (px) since: the same dwell, the same look.
+    #: Otherwise - a new place, where the light falls differently (an LED that turned with the
+    #: tool) - from several lights: a start from another place's shading converged to wrong
+    #: minima (0.4-0.6 px off for an LED turned half away from the camera, one frame in ten).
+    WARM_START_PX = 1.0
     #: A warm-started fit whose residual exceeds the last fit's this many times is redone
     #: from the cold starts (the better of the two kept).
     REFIT_RMS = 2.0
@@ -321,10 +324,9 @@ class SphereDetector(Detector):
         sigma0 = 0.8 if start is None else start[3]
         radius0 = math.sqrt(max(cand.radius ** 2 - 4.0 * sigma0 ** 2, 0.25 * cand.radius ** 2))
         fit = None
-        if start is not None:
-            near = np.hypot(*(centroid - start[0])) < self.WARM_START_PX
-            fit = fit_shaded_sphere(patch, u0, v0, centroid + start[1],
-                                    start[2] if near else radius0, sigma0, start[4])
+        if start is not None and np.hypot(*(centroid - start[0])) < self.WARM_START_PX:
+            fit = fit_shaded_sphere(patch, u0, v0, centroid + start[1], start[2], sigma0,
+                                    start[4])
         if fit is None or not fit.ok or fit.rms > self.REFIT_RMS * start[5]:
             # No start, a failed one, or a fit much worse than the last: from several lights
             # (a warm start can carry a wrong minimum from frame to frame).
