@@ -175,13 +175,18 @@ def pooled_light_arrays(arrays):
         sel = np.flatnonzero(has & (arrays.camera_index == c))
         if not len(sel):
             continue
+        n = arrays.n_frames[sel]
+        # Each shift's own noise per axis: the fit's and the centroid's frame scatter (2-D
+        # RMS distances) over the frames pooled; their correlation is left out (an upper bound).
+        own = (arrays.spread_px[sel] ** 2 + arrays.centroid_spread_px[sel] ** 2) / \
+            (2.0 * np.maximum(n - 1, 1))
         pooled = pool_light_shift(arrays.points[arrays.point_index[sel]],
-                                  arrays.uv[sel] - arrays.centroid_uv[sel])
+                                  arrays.uv[sel] - arrays.centroid_uv[sel],
+                                  own if np.all(n >= 2) else None)
         info[name] = pooled
         if pooled.status != 'ok':
             continue
         uv[sel] = arrays.centroid_uv[sel] + pooled.shift
-        n = arrays.n_frames[sel]
         spread[sel] = np.sqrt(arrays.centroid_spread_px[sel] ** 2 +
                               2.0 * np.maximum(n - 1, 0) * pooled.variance)
     return replace(arrays, uv=uv, spread_px=spread), info

@@ -92,3 +92,17 @@ def test_the_engine_moves_centroids_to_the_pooled_centre():
     assert err_pooled < 0.5 * err_fitted, (err_pooled, err_fitted)
     # The spread now says the centroid's scatter plus the smooth's, not the fit's.
     assert np.all(b.spread_px[c1] >= 0.01) and np.all(b.spread_px[c1] < 0.05)
+
+
+def test_a_shift_that_is_not_a_function_of_the_place_is_refused():
+    """An LED's shift follows the tool's turn: at one place it may point either way."""
+    points, rng = _views(200, 6)
+    turn = rng.choice([-1.0, 1.0], 200)[:, None]
+    d = 0.3 * turn * np.array([1.0, 0.5]) + rng.normal(0, 0.01, (200, 2))
+    own = np.full(200, 0.01 ** 2)
+    refused = pool_light_shift(points, d, own)
+    assert refused.status == 'not_smooth' and 'turns with the tool' in refused.message
+    np.testing.assert_array_equal(refused.shift, d)
+    # A lamp's smooth shift with the same noise is pooled.
+    lamp = _lamp_shift(points) + rng.normal(0, 0.01, (200, 2))
+    assert pool_light_shift(points, lamp, own).status == 'ok'

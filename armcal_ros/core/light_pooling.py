@@ -27,7 +27,9 @@ Tibshirani and Friedman, *The Elements of Statistical Learning*, 7.10).
 
 Assumption: the light does not move with the marker.  An LED whose brightest side turns with
 the tool shifts its centroid with the tool's orientation, which this smooth over positions
-does not see: use the per-view fit (``sphere_centre: shaded``) there.
+does not see: use the per-view fit (``sphere_centre: shaded``) there.  Given each shift's own
+noise, such a light is caught: the smooth then predicts left-out views far worse than their
+noise (:data:`MAX_NOISE_RATIO`), and the fitted centres are kept.
 """
 
 from dataclasses import dataclass
@@ -41,6 +43,11 @@ K_GRID = (8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256)
 MIN_VIEWS = 12
 #: Views the leave-one-out choice of k is scored at, at most.
 MAX_SCORED = 400
+#: The smooth must predict left-out views within this many times their own noise (RMS);
+#: beyond it the shift is not a function of the ball's place (module doc) and the fitted
+#: centres are kept.  About 1 under a lamp or even light; about 10 for an LED (a shift that
+#: follows the tool's turn) on the simulator's recordings.
+MAX_NOISE_RATIO = 3.0
 
 
 @dataclass
@@ -120,12 +127,15 @@ def _global_fit(points, values, degree, leave_out):
     return (fit - h[:, None] * values) / (1.0 - h[:, None]), h / (1.0 - h)
 
 
-def pool_light_shift(points, shifts) -> PooledShift:
+def pool_light_shift(points, shifts, noise_var=None) -> PooledShift:
     """
     Pool one camera's light shifts over its views (module doc).
 
     ``points`` (M, 3) the views' nominal marker positions (m), ``shifts`` (M, 2) fitted centre
-    minus centroid (px).
+    minus centroid (px), ``noise_var`` (M,) optional: each shift's own noise variance per axis
+    (px^2, from the scatter of its frames).  With it, a smooth whose leave-one-out error
+    exceeds :data:`MAX_NOISE_RATIO` times that noise is refused (status 'not_smooth', the
+    fitted centres kept): the light moves with the marker.
     """
     points = np.asarray(points, float)
     shifts = np.asarray(shifts, float)
@@ -158,6 +168,16 @@ def pool_light_shift(points, shifts) -> PooledShift:
     fit, kernel_sq = _local_linear(points, shifts, tree, k, False, degree)
     # The d's own noise: what the leave-one-out error leaves after the smooth's variance.
     _, loo_kernel_sq = _local_linear(points, shifts, tree, k, True, degree, at)
+    if noise_var is not None:
+        own = float(np.mean(np.asarray(noise_var, float)))
+        ratio = np.sqrt(err / own) if own > 0 else np.inf
+        if ratio > MAX_NOISE_RATIO:
+            return PooledShift(shifts.copy(), np.full(m, np.nan), k, float(np.sqrt(err)),
+                               'not_smooth',
+                               f'the light\'s shift is not smooth over the marker\'s places '
+                               f'(left-out views predicted to {np.sqrt(err):.3f} px, {ratio:.1f} '
+                               f'x their own noise): the fitted centres are kept - a light '
+                               f'that turns with the tool?')
     noise_var = err / (1.0 + float(np.mean(loo_kernel_sq)))
     how = {None: f'local planes through {k} neighbouring views', 1: 'one plane',
            0: 'one constant'}[degree]
