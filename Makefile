@@ -45,6 +45,7 @@ bench: $(STAMP)
 	$(PY) bench/changes.py
 	$(PY) bench/realism.py
 	$(PY) bench/realism.py --all-effects
+	$(PY) bench/realism_effects.py
 	$(PY) bench/arm_effects.py
 	$(PY) bench/latency.py
 	$(PY) bench/change_split.py
