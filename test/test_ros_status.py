@@ -87,3 +87,9 @@ def test_diagnostics_say_a_camera_changed_and_is_withheld():
                        status='reported')
     main = diagnostic_statuses(_state(changes=[moved, arm], start_ns=start))[0]
     assert main.level == 1 and 'disagreed with the arm at t = 200.0 s' in main.message
+
+
+def test_each_camera_says_how_the_light_was_pooled():
+    said = 'not_smooth: the light\'s shift is not smooth over the marker\'s places'
+    st = diagnostic_statuses(_state(light_pooling={'cam2': said}))
+    assert 'light_pooling' not in st[1].values and st[2].values['light_pooling'] == said

@@ -863,7 +863,8 @@ class CalibratorNode(Node):
             recalibration_samples=e.settings.recalibration_samples,
             n_published=self._n_published, frame_ids=dict(e.frame_ids),
             missing_joints=tuple(sorted(self.collector.missing_joints)),
-            seen_joint_names=self.collector.seen_joint_names)
+            seen_joint_names=self.collector.seen_joint_names,
+            light_pooling={k: f'{p.status}: {p.message}' for k, p in e.light_pooling.items()})
 
     def _publish_diagnostics(self):
         stamp = self.get_clock().now().to_msg()

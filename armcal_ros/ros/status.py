@@ -76,6 +76,8 @@ class NodeState:
     #: Robot-model joints the joint states lacked, and the names such a message carried.
     missing_joints: tuple = ()
     seen_joint_names: tuple = ()
+    #: Camera -> how the light's shift was pooled at the last solve (``shaded_pooled``).
+    light_pooling: Dict[str, str] = field(default_factory=dict)
 
 
 def diagnostic_statuses(s: NodeState, node_name='armcal') -> List[Status]:
@@ -160,6 +162,8 @@ def camera_status(name, s: NodeState, node_name='armcal') -> Status:
     size = s.image_sizes.get(name)
     values['image_size'] = f'{size[0]}x{size[1]}' if size else 'no image yet'
     values['frame_id'] = s.frame_ids.get(name) or f'{name}_optical_frame'
+    if name in s.light_pooling:
+        values['light_pooling'] = s.light_pooling[name]
     c = s.calibration.cameras.get(name) if s.calibration is not None else None
     mine = [r for r in s.changes if r.camera == name and r.kind == 'camera']
     if mine:
