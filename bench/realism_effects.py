@@ -11,10 +11,11 @@ true projection in the frame nearest each observation's stamp - median and 99th-
 error, the mean shift per camera (the bias pooling does not remove; median over cameras) and
 the observations more than 1 px off (false observations kept).
 
-Usage: python bench/realism_effects.py [--seeds 2] [--duration 60] [--processes 2]
+Usage: python bench/realism_effects.py [--seeds 2] [--duration 60] [--processes 2] [--table-only]
 """
 
 import argparse
+import json
 import os
 import sys
 import tempfile
@@ -102,8 +103,10 @@ def case(args):
             with open(params, 'w') as f:
                 yaml.safe_dump(doc, f)
             res = os.path.join(tmp, centre)
-            assert armcal(['calibrate', bag, '--params', params, '--output', res, '--quiet',
-                           '--no-latency']) == 0
+            if armcal(['calibrate', bag, '--params', params, '--output', res, '--quiet',
+                       '--no-latency']) != 0:
+                out[centre] = dict(failed=True)       # its reason is on stderr
+                continue
             sc = compare({c.name: c for c in read_cameras(res)[1]}, gt)
             out[centre] = dict(shape_mm=sc.shape_mm, absolute_mm=sc.absolute_mm,
                                **observation_errors(res, gt, centre))
@@ -116,33 +119,53 @@ def main(argv=None):
     ap.add_argument('--seeds', type=int, default=2)
     ap.add_argument('--duration', type=float, default=60.0)
     ap.add_argument('--processes', type=int, default=2)
+    ap.add_argument('--table-only', action='store_true',
+                    help='tabulate bench/realism_effects.jsonl as it is (no new runs)')
     args = ap.parse_args(argv)
-    jobs = [(cell, seed, args.duration, label, opts) for cell in CELL_NAMES
-            for label, opts in effects(cell) for seed in range(args.seeds)]
-    with Pool(args.processes) as pool:
-        res = pool.map(case, jobs, chunksize=1)
+    # Seed by seed, each result kept as it comes (bench/realism_effects.jsonl): an interrupted
+    # run still has whole seeds, and --table-only tabulates what there is.
+    partial = os.path.join(os.path.dirname(os.path.abspath(__file__)), 'realism_effects.jsonl')
+    if not args.table_only:
+        jobs = [(cell, seed, args.duration, label, opts) for seed in range(args.seeds)
+                for cell in CELL_NAMES for label, opts in effects(cell)]
+        open(partial, 'w').close()
+        with Pool(args.processes) as pool:
+            for r in pool.imap_unordered(case, jobs, chunksize=1):
+                with open(partial, 'a') as f:
+                    f.write(json.dumps(r) + '\n')
+    with open(partial) as f:
+        res = [json.loads(line) for line in f if line.strip()]
+    seeds = len({r['seed'] for r in res})
     rows = []
     for cell in CELL_NAMES:
         for label, _ in effects(cell):
             rs = [r for r in res if (r['cell'], r['effect']) == (cell, label)]
             for centre in CENTRES:
+                ok = [r[centre] for r in rs if not r[centre].get('failed')]
+                failed = len(rs) - len(ok)
+                if not ok:
+                    rows.append([cell, label, centre] + ['failed'] * 6)
+                    continue
+
                 def med(key):
-                    return np.median([r[centre][key] for r in rs])
-                rows.append([cell, label, centre, f'{med("shape_mm"):.3f}',
+                    return np.median([o[key] for o in ok])
+                rows.append([cell, label, centre,
+                             f'{med("shape_mm"):.3f}' + (f' ({failed} failed)' if failed else ''),
                              f'{med("absolute_mm"):.3f}', f'{med("median_px"):.3f}',
                              f'{med("p99_px"):.3f}', f'{med("shift_px"):.3f}',
-                             f'{sum(r[centre]["false_kept"] for r in rs)} / '
-                             f'{sum(r[centre]["observations"] for r in rs)}'])
+                             f'{sum(o["false_kept"] for o in ok)} / '
+                             f'{sum(o["observations"] for o in ok)}'])
     text = '\n'.join([
         '## Each effect of a real cell alone, for each sphere centre '
         '(bench/realism_effects.py)', '',
-        f'{args.seeds} seeds x {args.duration:.0f} s per cell and effect; the same trajectory '
+        f'{seeds} seed(s) x {args.duration:.0f} s per cell and effect; the same trajectory '
         'and errors with one `armcal simulate` switch each, calibrated with `auto` and each '
         '`sphere_centre` (no latency pass: nothing here stamps late). Shape and absolute error '
         'against the simulator\'s cameras; the solver\'s observations (for `shaded_pooled`, '
         'after pooling) against the true projection in the nearest frame: median and 99th '
         'percentile error, the mean shift per camera (median over the cameras), and the '
-        'observations more than 1 px off over all there were. Medians over the seeds. '
+        'observations more than 1 px off over all there were. Medians over the seeds; a '
+        '"failed" run is one `armcal calibrate` refused (its reason on stderr). '
         f'Measured on {machine()}.', '',
         table(['cell', 'effect', 'sphere_centre', 'shape mm', 'absolute mm', 'median px',
                '99th pct px', 'mean shift px', 'false kept'], rows)])
