@@ -110,13 +110,17 @@ class ChangeTracker:
 
     # -- the predictor ---------------------------------------------------------------------
     def build_monitor(self, calibration, arrays, arm_sigma,
-                      parameter_covariance=None) -> Optional[ChangeMonitor]:
+                      parameter_covariance=None, joint_covariance=None
+                      ) -> Optional[ChangeMonitor]:
         """
         Return a monitor of an accepted calibration, scaled on the samples it was solved on.
 
         The cameras being recalibrated are left out; ``parameter_covariance`` maps cameras to
-        (their parameter names, covariance) from the adjustment.  Built outside the engine's
-        lock (the scales take a fraction of a second); the engine swaps it in.
+        (their parameter names, covariance) from the adjustment, ``joint_covariance`` is
+        ([(camera, parameter)], C) over all of them with their correlations (what the
+        leave-one-out prediction propagates, :func:`~armcal_ros.core.change.agreement`).  Built
+        outside the engine's lock (the scales take a fraction of a second); the engine swaps it
+        in.
         """
         if not self.enabled or calibration is None:
             return None
@@ -137,9 +141,14 @@ class ChangeTracker:
         # the fit has pulled in: there the parameters' uncertainty does not show, so it is
         # left out of the scale and added for the new views only.
         scales = reference_scales(PredictionModel(cams, sig, arm), points, obs)
+        joint = None
+        if joint_covariance is not None:
+            names, C = joint_covariance
+            keep = [i for i, (c, _) in enumerate(names) if c in cams]
+            joint = ([names[i] for i in keep], np.asarray(C)[np.ix_(keep, keep)])
         model = PredictionModel(cams, sig, arm, {k: v for k, v in
                                                  (parameter_covariance or {}).items()
-                                                 if k in cams})
+                                                 if k in cams}, joint)
         return ChangeMonitor(model, scales, self.settings)
 
     def observe(self, sample) -> Optional[ChangeEvent]:

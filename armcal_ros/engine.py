@@ -712,7 +712,7 @@ class CalibrationEngine:
         if adj is not None and adj.points is not None and len(adj.points) == len(points):
             arm = float(np.sqrt(np.mean(np.sum((adj.points - points) ** 2, axis=1)) / 3.0))
         cal.hyperparameters['arm_sigma_mm'] = 1e3 * arm
-        blocks = {}
+        blocks, joint = {}, ([], [])
         if adj is not None and adj.covariance is not None:
             names = list(adj.parameter_names)
             for cam in cal.cameras:
@@ -720,16 +720,24 @@ class CalibrationEngine:
                 if idx and np.all(np.isfinite(adj.covariance[np.ix_(idx, idx)])):
                     blocks[cam] = ([names[i][len(cam) + 1:] for i in idx],
                                    adj.covariance[np.ix_(idx, idx)])
+                    joint[0].extend((cam, names[i][len(cam) + 1:]) for i in idx)
+                    joint[1].extend(idx)
+        if joint[1] and np.all(np.isfinite(adj.covariance[np.ix_(joint[1], joint[1])])):
+            joint = (joint[0], adj.covariance[np.ix_(joint[1], joint[1])])
+        else:
+            joint = None
         with self._lock:
             jobs = self.changes.accepted(cal)
         sized = self.changes.size(jobs, arrays)
-        monitor = self.changes.build_monitor(cal, arrays, arm, blocks)
+        monitor = self.changes.build_monitor(cal, arrays, arm, blocks, joint)
         with self._lock:
             self.changes.apply_sizes(sized)
             old = self.changes.monitor
             # A solve that ran while a camera was drifting off its prediction has absorbed
             # part of the change: keep testing against the calibration that saw it coming.
             if old is None or not old.busy:
+                if old is not None and monitor is not None:
+                    monitor.carry_over(old)
                 self.changes.monitor = monitor
 
     def _reference_for(self, specs, points, obs, initial, kin, solver, n, arrays, sel):

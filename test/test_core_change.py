@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from armcal_ros.core.change import (cap_of, ChangeMonitor, ChangeSettings, innovation,
-                                    PredictionModel, reference_scales, statistics,
-                                    statistics_batch, threshold)
+from armcal_ros.core.change import (agreement, cap_of, ChangeMonitor, ChangeSettings, fuse,
+                                    innovation, PredictionModel, reference_scales,
+                                    size_change, statistics, statistics_batch, threshold, View)
 from armcal_ros.sim.synthetic import make_problem
 
 PIXEL_SIGMA = 0.3
@@ -87,6 +87,163 @@ def test_batched_statistics_equal_the_per_sample_ones():
             else:
                 assert np.isnan(d2[i])
     assert compared > 300
+
+
+_PARAMS = ['fx', 'fy', 'cx', 'cy', 'k1', 'k2', 'wx', 'wy', 'wz', 'tx', 'ty', 'tz']
+
+
+def _perturbed(cams, joint_names, step):
+    """Return copies of ``cams`` with ``step`` added to the parameters ``joint_names``."""
+    out = []
+    for c in cams:
+        c = c.copy()
+        d = {p: step[i] for i, (n, p) in enumerate(joint_names) if n == c.name}
+        c.fx, c.fy, c.cx, c.cy = (c.fx + d.get('fx', 0.0), c.fy + d.get('fy', 0.0),
+                                  c.cx + d.get('cx', 0.0), c.cy + d.get('cy', 0.0))
+        dist = np.array(c.dist, float)
+        dist[0] += d.get('k1', 0.0)
+        dist[1] += d.get('k2', 0.0)
+        c.dist = dist
+        c.apply_pose_increment(np.array([d.get(p, 0.0) for p in ('wx', 'wy', 'wz')]),
+                               np.array([d.get(p, 0.0) for p in ('tx', 'ty', 'tz')]))
+        out.append(c)
+    return out
+
+
+def test_the_joint_covariance_is_propagated_by_the_innovations_derivative():
+    """S's parameter term equals g g^T with g the finite-difference derivative of r_c."""
+    cams, _, measured, uvs = _stream(30, 6)
+    names = [(c.name, p) for c in cams for p in _PARAMS]
+    scale = {'fx': 1.0, 'fy': 1.0, 'cx': 1.0, 'cy': 1.0, 'k1': 1e-3, 'k2': 1e-3}
+    bare = _model(cams)
+    rng = np.random.default_rng(6)
+    i = next(k for k, o in enumerate(uvs) if len(o) == 3)
+    for _ in range(4):
+        v = np.array([scale.get(p, 1e-4) for _, p in names]) * rng.normal(size=len(names))
+        joint = PredictionModel(bare.cameras, bare.sigma_px, ARM_SIGMA, {},
+                                (names, np.outer(v, v)))
+        for cam in cams:
+            S = innovation(joint, measured[i], uvs[i], cam.name)[1] - \
+                innovation(bare, measured[i], uvs[i], cam.name)[1]
+            h = 1e-3
+            rp, rm = (innovation(PredictionModel({c.name: c for c in _perturbed(cams, names, e)},
+                                                 bare.sigma_px, ARM_SIGMA),
+                                 measured[i], uvs[i], cam.name)[0] for e in (h * v, -h * v))
+            g = (rp - rm) / (2 * h)
+            # First order against a finite difference through the Gauss-Newton fusion.
+            assert S == pytest.approx(np.outer(g, g), rel=1e-2, abs=1e-9)
+
+
+def test_a_motion_of_every_camera_together_adds_nothing_to_the_prediction():
+    """
+    The frame's uncertainty cancels: moving all cameras rigidly moves the fused point with them.
+
+    A covariance along a common translation of every camera (each camera's t changes by
+    -R_c d) leaves the leave-one-out innovation's covariance as it was, while the per-camera
+    blocks of the same covariance widen it by far more than the image noise.
+    """
+    cams, _, measured, uvs = _stream(30, 7)
+    names = [(c.name, p) for c in cams for p in ('tx', 'ty', 'tz')]
+    d = np.array([0.012, -0.009, 0.006])
+    v = np.concatenate([-c.rotation @ d for c in cams])
+    C = np.outer(v, v)
+    bare = _model(cams)
+    big_arm = PredictionModel(bare.cameras, bare.sigma_px, 1.0)
+    joint = PredictionModel(bare.cameras, bare.sigma_px, 1.0, {}, (names, C))
+    blocks = PredictionModel(bare.cameras, bare.sigma_px, 1.0,
+                             {c.name: (['tx', 'ty', 'tz'], C[3 * j:3 * j + 3, 3 * j:3 * j + 3])
+                              for j, c in enumerate(cams)})
+    i = next(k for k, o in enumerate(uvs) if len(o) == 3)
+    for cam in cams:
+        S0 = innovation(big_arm, measured[i], uvs[i], cam.name)[1]
+        assert innovation(joint, measured[i], uvs[i], cam.name)[1] == pytest.approx(
+            S0, rel=1e-6, abs=1e-9)
+        assert np.trace(innovation(blocks, measured[i], uvs[i], cam.name)[1]) > \
+            10 * np.trace(S0)
+
+
+def test_agreement_without_a_joint_covariance_is_the_fusions_chi_square():
+    cams, _, measured, uvs = _stream(20, 8)
+    model = _model(cams)
+    names = [(c.name, p) for c in cams for p in _PARAMS]
+    zero = PredictionModel(model.cameras, model.sigma_px, ARM_SIGMA, {},
+                           (names, np.zeros((len(names), len(names)))))
+    for X, obs in zip(measured, uvs):
+        for use_arm in (True, False):
+            f = fuse(model, X, obs, use_arm=use_arm)
+            got = agreement(zero, X, obs, use_arm=use_arm)
+            if f is None:
+                assert got is None
+                continue
+            assert got[0] == pytest.approx(f.chi2, rel=1e-6)
+            assert got[1] == f.dof
+
+
+def test_one_place_seen_in_several_samples_counts_once():
+    """Three samples of one pause with one bad view do not pass for three bad views."""
+    cams, _, measured, uvs = _stream(200, 9)
+    model = _model(cams)
+    mon = ChangeMonitor(model, reference_scales(model, measured[:100], uvs[:100]))
+    k = next(i for i in range(100, 200) if len(uvs[i]) == 3)
+    bad = dict(uvs[k])
+    name = cams[0].name
+    bad[name] = bad[name] + np.array([6.0, -4.0])
+    for j in range(3):
+        assert mon.observe(measured[k] + 1e-4 * j, bad, 1000 + j) is None
+    # The same error at three different places is three views: the CUSUM climbs past h.
+    mon2 = ChangeMonitor(model, reference_scales(model, measured[:100], uvs[:100]))
+    climbed = []
+    for j, i in enumerate([i for i in range(100, 200) if len(uvs[i]) == 3][:3]):
+        obs = dict(uvs[i])
+        obs[name] = obs[name] + np.array([6.0, -4.0])
+        mon2.observe(measured[i], obs, 1000 + j)
+        climbed.append(mon2.windows[name][0])
+    assert mon.windows[name][0] < mon2.threshold < climbed[-1] or mon2.busy
+
+
+def test_the_scale_follows_the_recent_statistics_but_not_the_latest():
+    cams, _, measured, uvs = _stream(300, 10)
+    model = _model(cams)
+    mon = ChangeMonitor(model, {c.name: 0.25 for c in cams})
+    name = cams[0].name
+    assert mon.scale(name) == 0.25
+    for i in range(100, 300):
+        mon.observe(measured[i], uvs[i], i)
+    # The true predictor under-scaled by 4: the running median restores about 1.
+    assert 0.7 < mon.scale(name) < 1.4
+    # It never drops below the calibration's own scale.
+    low = ChangeMonitor(model, {c.name: 3.0 for c in cams})
+    for i in range(100, 200):
+        low.observe(measured[i], uvs[i], i)
+    assert low.scale(name) == 3.0
+
+
+def test_a_move_along_the_axis_is_not_called_a_lens_change():
+    """
+    A pose change that the focal length could partly absorb is a pose change (F test).
+
+    The views carry a small systematic error of the old calibration (its k1 off), which the
+    free focal length soaks up a little; the lens is named only when a focal change stands out
+    against that misfit.  Over this shallow synthetic workspace a 2 % focal change is nearly
+    a 34 mm move along the axis (the refits differ by chi^2 12 over 100 views); 5 % stands out.
+    """
+    cams, X, measured, uvs = _stream(300, 11)
+    model = _model(cams)
+    cam = cams[1]
+    moved = cam.copy()
+    moved.apply_pose_increment(np.radians([0.3, -0.2, 0.1]), np.array([0.002, 0.0, 0.004]))
+    moved.dist = np.array(moved.dist, float) + np.array([0.01, 0, 0, 0, 0])[:len(moved.dist)]
+    refocused = cam.copy()
+    refocused.fx, refocused.fy = 1.05 * cam.fx, 1.05 * cam.fy
+    rng = np.random.default_rng(11)
+    for new, what in ((moved, 'pose'), (refocused, 'lens')):
+        views = []
+        for i in range(len(X)):
+            if cam.name in uvs[i] and len(uvs[i]) == 3:
+                obs = dict(uvs[i])
+                obs[cam.name] = new.project(X[i:i + 1])[0] + rng.normal(0, PIXEL_SIGMA, 2)
+                views.append(View(i, measured[i], obs))
+        assert size_change(model, cam.name, views[:100])[0] == what
 
 
 def test_an_unchanged_cell_raises_no_alarm():

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from armcal_ros.core.adjustment import SolverSettings
+from armcal_ros.params import defaults
 from armcal_ros.core.priors import PriorSettings
 from armcal_ros.engine import CalibrationEngine, EngineSettings
 from armcal_ros.frontend.samples import Observation, Sample
+from armcal_ros.settings import solver_settings
 from armcal_ros.sim.cell import CameraChange, SimSettings, simulate_cell
 from armcal_ros.sim.point_level import dwell_observations
 
@@ -36,7 +37,8 @@ def _session(changes, seed=0, duration=240.0, scenario='geometric'):
 def _run(sim, samples, **kw):
     names = [c.name for c in sim.cameras]
     eng = CalibrationEngine(EngineSettings(names, PriorSettings('correlated'),
-                                           SolverSettings(), min_samples=20, **kw))
+                                           solver_settings(defaults()), min_samples=20,
+                                           **kw))
     for c in sim.cameras:
         eng.set_image_size(c.name, c.width, c.height)
     eng.feed(samples)
