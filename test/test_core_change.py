@@ -312,3 +312,29 @@ def test_settings_are_checked_with_their_names():
         ChangeSettings(false_alarm=0.7).validate()
     with pytest.raises(ValueError, match='arm_sigma'):
         PredictionModel({}, {}, 0.0)
+
+
+def test_a_static_spot_taken_for_the_marker_is_not_a_camera_that_moved():
+    """
+    One camera sees a fixed bright spot instead of the marker: a refit explains it only by
+    degenerating (a camera far away, a much longer lens), which is no move; nothing is declared.
+    """
+    cams, X, measured, uvs = _stream(300, 12)
+    model = _model(cams)
+    mon = ChangeMonitor(model, reference_scales(model, measured[:100], uvs[:100]))
+    name = cams[2].name
+    spot = np.array([300.0, 200.0])
+    rng = np.random.default_rng(12)
+    events = []
+    for k in range(100, 200):
+        obs = dict(uvs[k])
+        if k >= 150 and name in obs:
+            obs[name] = spot + rng.normal(0, PIXEL_SIGMA, 2)
+        e = mon.observe(measured[k], obs, k)
+        if e is not None:
+            events.append(e)
+            if e.kind == 'camera':
+                break
+    assert events and all(e.kind != 'camera' for e in events), \
+        [(e.kind, e.fit and (e.fit.rotation_deg, e.fit.focal_percent)) for e in events]
+    assert any(e.kind == 'disagreement' and e.camera == name for e in events)

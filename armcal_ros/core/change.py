@@ -116,6 +116,14 @@ ONSET_SLACK = 2
 #: calibration describes a little worse) just before a real change leaves too few new views
 #: for the refit at first; waiting for them costs less than a reset and a new climb.
 MAX_SUSPECT_VIEWS = 3 * CONFIRM_OBSERVATIONS
+#: A refit explains a camera's views only with a change a camera can physically undergo: turned
+#: by at most this much (a knock, a mount that slipped), its lens by at most MAX_FOCAL_PERCENT
+#: (refocus or zoom), its centre by at most MAX_SHIFT_FRACTION of its distance to the views.
+#: Views that a camera model fits only by degenerating (a static spot taken for the marker,
+#: fitted with a camera 100 km away and a focal length 14 times longer) are not a move.
+MAX_ROTATION_DEG = 45.0
+MAX_FOCAL_PERCENT = 50.0
+MAX_SHIFT_FRACTION = 0.5
 #: Views per camera whose statistics rescale the test as it runs (see :class:`ChangeMonitor`):
 #: enough for a median within about 15 %; the latest LAG_VIEWS are left out, so that a change
 #: cannot soften its own test before the CUSUM (three views at least) and the confirmation
@@ -621,6 +629,19 @@ class CameraChangeFit:
     used: List[int]
     old_d2: np.ndarray = None       # each view's whitened residual^2, the old camera
     new_d2: np.ndarray = None       # and the refitted one
+    depth_m: float = float('nan')   # the views' median depth in the old camera
+
+    @property
+    def plausible(self) -> bool:
+        """Return True if the change is one a camera can undergo (MAX_ROTATION_DEG etc.)."""
+        return bool(self.rotation_deg <= MAX_ROTATION_DEG
+                    and abs(self.focal_percent) <= MAX_FOCAL_PERCENT
+                    and 1e-3 * self.translation_mm <= MAX_SHIFT_FRACTION * self.depth_m)
+
+    @property
+    def explains(self) -> bool:
+        """Return True if the refit explains the views (ratio <= 1) with a plausible change."""
+        return bool(self.ratio <= 1.0 and self.plausible)
 
 
 def explain_by_camera_change(model: PredictionModel, camera, seen, scales=None,
@@ -702,11 +723,12 @@ def explain_by_camera_change(model: PredictionModel, camera, seen, scales=None,
     dof = 2 * n - (7 if fit_focal else 6)
     ratio = (float(r @ r) / float(chi2.isf(false_alarm, dof)) if dof > 0 else float('nan'))
     angle = np.linalg.norm(Rotation.from_matrix(cam.rotation @ cam0.rotation.T).as_rotvec())
+    depth = float(np.median((X @ cam0.rotation.T + cam0.translation)[:, 2])) if n else np.nan
     return CameraChangeFit(float(np.degrees(angle)),
                            float(1e3 * np.linalg.norm(cam.center - cam0.center)),
                            float(100.0 * (scale - 1.0)), ratio, used,
                            np.sum(r_old.reshape(-1, 2) ** 2, axis=1),
-                           np.sum(r.reshape(-1, 2) ** 2, axis=1))
+                           np.sum(r.reshape(-1, 2) ** 2, axis=1), depth)
 
 
 def size_change(model: PredictionModel, camera, seen, scales=None, false_alarm=1e-6):
@@ -894,7 +916,7 @@ class ChangeMonitor:
             sus['onset'] = sus['seen'][0].stamp_ns
             fit = explain_by_camera_change(self.model, camera, sus['seen'], scales,
                                            self.settings.false_alarm)
-        if fit.ratio > 1.0 and len(sus['seen']) < MAX_SUSPECT_VIEWS:
+        if not fit.explains and len(sus['seen']) < MAX_SUSPECT_VIEWS:
             # Not explained yet: wait while the latest views still disagree with the old
             # calibration as a whole (the change may have begun after the climb did).
             latest = fit.old_d2[-CONFIRM_OBSERVATIONS:]
@@ -905,7 +927,11 @@ class ChangeMonitor:
         evidence = dict(sus['evidence'])
         evidence['unexplained after refitting the camera'] = fit.ratio
         self._clear()
-        if fit.ratio <= 1.0:
+        if not fit.plausible:
+            evidence.update({'implausible refit: rotation deg': fit.rotation_deg,
+                             'implausible refit: centre mm': fit.translation_mm,
+                             'implausible refit: focal %': fit.focal_percent})
+        if fit.explains:
             event = ChangeEvent('camera', camera, sus['onset'], stamp, sus['statistic'],
                                 self.threshold, len(fit.used), evidence, fit, self.model)
             self.model = self.model.without(camera)
@@ -962,9 +988,12 @@ class ChangeMonitor:
             scales = self.current_scales()
             for n in ok:
                 views = [v for v in seen if n in v.uvs][ONSET_SLACK:]
-                evidence[f'refit {n}'] = (explain_by_camera_change(
-                    self.model, n, views, scales, self.settings.false_alarm).ratio
-                    if len(views) >= CONFIRM_OBSERVATIONS else float('nan'))
+                fit = (explain_by_camera_change(self.model, n, views, scales,
+                                                self.settings.false_alarm)
+                       if len(views) >= CONFIRM_OBSERVATIONS else None)
+                evidence[f'refit {n}'] = fit.ratio if fit is not None else float('nan')
+                if fit is not None and not fit.plausible:
+                    evidence[f'refit {n}'] = float('inf')
             explained = [n for n in ok if evidence[f'refit {n}'] <= 1.0]
             if len(explained) == 1:
                 return 'camera', explained[0], evidence
