@@ -29,6 +29,7 @@ from armcal_ros.frontend.pairing import (DwellPooler, FramePairer, JointStatus, 
 from armcal_ros.frontend.pose_input import (mean_pose_vector, pose_points, pose_vector_matrix,
                                             PoseHistory)
 from armcal_ros.frontend.samples import BoardTarget
+from armcal_ros.frontend.static_spots import STATIC_PX, StaticSpotFilter
 from armcal_ros.robot.kinematics import KinematicChain
 
 
@@ -165,6 +166,10 @@ class SampleCollector:
         self.pooler = DwellPooler(fk, dwell_radius=dwell_radius,
                                   min_frames=min_frames, mean_config=mean,
                                   max_views=max_views_per_dwell if board is not None else 0)
+        # A point target carried by the arm moves in the images when the arm moves; eye-in-
+        # hand cameras and boards follow other rules.
+        self.static_spots = (StaticSpotFilter() if board is None and not cameras_on_link
+                             else None)
         self.counts = collections.Counter()
         self.image_sizes: Dict[str, tuple] = {}
         self.log = RateLimitedLog(log)
@@ -275,6 +280,13 @@ class SampleCollector:
             if self.board is not None:
                 c = self.board.centre_in_link()
                 s.point_nominal = s.pose[:3, :3] @ c + s.pose[:3, 3]
+        if self.static_spots is not None and samples:
+            samples, dropped = self.static_spots.filter(samples)
+            for cam in dropped:
+                self._count('observations_static',
+                            f'{cam}: a view that stayed within {STATIC_PX:g} px of the last '
+                            'while the arm moved (a fixed spot taken for the marker)')
+            self.counts['samples_static'] = self.static_spots.counts['samples_static']
         return samples
 
     def _detect(self, camera, msg):
