@@ -337,9 +337,11 @@ class CalibrationEngine:
         with self._lock:
             result = self.store.add(sample)
             event = self.changes.observe(sample)
-            record = (self.changes.declare(event, self.store, self._current)
-                      if event is not None else None)
-        if record is not None:
+            before = len(self.changes.records)
+            if event is not None:
+                self.changes.declare(event, self.store, self._current)
+            records = self.changes.records[before:]
+        for record in records:
             for cb in list(self._change_listeners):
                 cb(record)
         return result
