@@ -149,6 +149,7 @@ def _run_simulate(args):
     from armcal_ros.sim.cell import simulate_cell
     from armcal_ros.sim.cells import cell_parameters, get_cell
     from armcal_ros.sim.output import write_sim_bag
+    from armcal_ros.sim.true_geometry import write_true_geometry
     if os.path.exists(args.output):
         raise ValueError(f'--output {args.output} exists already; choose a new bag directory')
     if args.duration <= 2.0:
@@ -238,6 +239,7 @@ def _run_simulate(args):
                 f'#   armcal calibrate {args.output} --params {params}\n')
         yaml.safe_dump({'armcal': {'ros__parameters': cell_parameters(settings, compressed)}},
                        f, sort_keys=False)
+    write_true_geometry(result, os.path.dirname(params), cell_parameters(settings, compressed))
     if live:
         print('', file=sys.stderr)
     if not args.quiet:

@@ -52,3 +52,12 @@ def test_calibrates_a_cell_it_was_not_developed_on(tmp_path, cell, duration):
         _, fixed, _ = _calibrate(bag, tmp_path / 'fixed', 'fixed')
         key = 'shape_mm' if len(names) >= 2 else 'reprojection_px'
         assert getattr(score, key) < getattr(fixed, key), (score, fixed)
+    if CELLS[cell].scenario == 'geometric' and len(names) >= 2:
+        # The limit: the arm's true geometry (the simulator writes it as a URDF) and `fixed`.
+        # The true geometry pins the frame too: well under the millimetre the nominal arm is
+        # off, and no worse in shape than the nominal arm under `fixed`.
+        armcal('calibrate', bag, '--params', bag / 'ground_truth' / 'params_true_geometry.yaml',
+               '--output', tmp_path / 'limit', '--quiet', '--no-latency')
+        limit = compare({c.name: c for c in read_cameras(tmp_path / 'limit')[1]},
+                        bag / 'ground_truth')
+        assert limit.absolute_mm < 0.5 and limit.shape_mm < fixed.shape_mm, (limit, fixed)
