@@ -268,6 +268,16 @@ def _parameter_jacobian(pj, names):
     return np.stack(cols, axis=2)
 
 
+def _joint_index(names):
+    """Return camera -> (its parameter names, their rows) of a joint covariance's names."""
+    index = {}
+    for i, (cam, p) in enumerate(names):
+        index.setdefault(cam, ([], []))
+        index[cam][0].append(p)
+        index[cam][1].append(i)
+    return index
+
+
 def _project(model: PredictionModel, name, X):
     cam = model.cameras[name]
     return project_with_jacobians(cam.intrinsics(), cam.dist, cam.rotation, cam.translation, X)
@@ -367,11 +377,7 @@ def agreement(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=Non
     if not ok[0]:
         return None
     cams, C = joint
-    index = {}
-    for i, (cam, p) in enumerate(cams):
-        index.setdefault(cam, ([], []))
-        index[cam][0].append(p)
-        index[cam][1].append(i)
+    index = _joint_index(cams)
     rows = 2 * len(names) + (3 if use_arm else 0)
     e, F, G, noise = (np.zeros(rows), np.zeros((rows, 3)), np.zeros((rows, len(cams))),
                       np.zeros(rows))
@@ -470,11 +476,7 @@ def _innovation_batch(model: PredictionModel, left, X0, uv, seen):
         S = Sigma + np.einsum('nak,nkl,nbl->nab', J, cov, J)
         if joint is not None:
             names, C = joint
-            index = {}
-            for i, (cam, p) in enumerate(names):
-                index.setdefault(cam, ([], []))
-                index[cam][0].append(p)
-                index[cam][1].append(i)
+            index = _joint_index(names)
             g = np.zeros((N, 2, len(names)))
             if left in index:
                 g[:, :, index[left][1]] = -_parameter_jacobian(_project(model, left, X),
