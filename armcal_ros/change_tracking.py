@@ -174,27 +174,23 @@ class ChangeTracker:
             return rec
         if event.kind in ('arm', 'unexplained'):
             return self._arm_or_unexplained(event, store, calibration)
+        camera = event.camera
         if calibration is not None:
             self.epoch_calibrations[self.epoch] = calibration
         self.epoch += 1
-        first = None
-        # A pair that each explain a change neither can be told from (event.also) starts one
-        # epoch together: both are retired and recalibrated.
-        for camera in [event.camera] + list(event.also):
-            rec = ChangeRecord(event.kind, camera, self.epoch, event.onset_ns,
-                               event.detected_ns, event.statistic, event.threshold,
-                               event.samples, {k: float(v) for k, v in event.evidence.items()})
-            if event.fit is not None:
-                rec.rotation_deg, rec.translation_mm = event.fit.rotation_deg, \
-                    event.fit.translation_mm
-                rec.focal_percent = event.fit.focal_percent
-            rec.retired = store.retire(event.onset_ns, self.epoch, camera)
-            old = calibration.cameras.get(camera) if calibration is not None else None
-            self.recalibrating[camera] = (rec, old, event.model)
-            self._sizing.pop(camera, None)
-            self.records.append(rec)
-            first = first or rec
-        return first
+        rec = ChangeRecord(event.kind, camera, self.epoch, event.onset_ns, event.detected_ns,
+                           event.statistic, event.threshold, event.samples,
+                           {k: float(v) for k, v in event.evidence.items()})
+        if event.fit is not None:
+            rec.rotation_deg, rec.translation_mm = event.fit.rotation_deg, \
+                event.fit.translation_mm
+            rec.focal_percent = event.fit.focal_percent
+        rec.retired = store.retire(event.onset_ns, self.epoch, camera)
+        old = calibration.cameras.get(camera) if calibration is not None else None
+        self.recalibrating[camera] = (rec, old, event.model)
+        self._sizing.pop(camera, None)
+        self.records.append(rec)
+        return rec
 
     def _arm_or_unexplained(self, event, store, calibration):
         """

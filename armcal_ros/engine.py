@@ -337,11 +337,9 @@ class CalibrationEngine:
         with self._lock:
             result = self.store.add(sample)
             event = self.changes.observe(sample)
-            before = len(self.changes.records)
-            if event is not None:
-                self.changes.declare(event, self.store, self._current)
-            records = self.changes.records[before:]
-        for record in records:
+            record = (self.changes.declare(event, self.store, self._current)
+                      if event is not None else None)
+        if record is not None:
             for cb in list(self._change_listeners):
                 cb(record)
         return result

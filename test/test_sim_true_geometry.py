@@ -16,8 +16,7 @@ def test_the_written_urdf_reproduces_the_true_arm_for_the_bundled_arms():
         # Ten times the simulator's errors, so that a mistake in the composition shows.
         errors = 10 * draw_geometric_errors(chain, rng)
         point = np.array([0.01, -0.02, 0.05])
-        true = KinematicChain.from_urdf(true_geometry_urdf(text, chain, errors),
-                                               'base_link', tip)
+        true = KinematicChain.from_urdf(true_geometry_urdf(text, chain, errors), 'base_link', tip)
         q = rng.uniform(-2.0, 2.0, size=(50, chain.n_joints))
         want = chain.fk(q, point, errors)
         got = true.fk(q, true_marker_offset(chain, errors, point))

@@ -602,9 +602,6 @@ class ChangeEvent:
     #: The predictor the change was found with (the changed camera's old calibration among
     #: the others): what the new views are later compared with, in the same frame.
     model: Optional['PredictionModel'] = None
-    #: Further cameras declared changed with ``camera``: the two cameras of a pair that each
-    #: explain a change neither the arm nor anything else can attribute (ChangeMonitor).
-    also: List[str] = field(default_factory=list)
 
 
 @dataclass
@@ -869,25 +866,8 @@ class ChangeMonitor:
                 evidence.get('ambiguous') and len(since) < MAX_SUSPECT_VIEWS)):
             # Too few views yet to tell one camera from another (a small move, one that began
             # inside the climb, or two cameras that each explain it so far): the CUSUM stays
-            # up and asks again at the next view.  A pair is judged on MAX_SUSPECT_VIEWS:
-            # judged on 8, young calibrations of the two-camera UR5 cell raised a pair change
-            # in 1 of 5 unchanged sessions.
+            # up and asks again at the next view.
             return None
-        pair = sorted({n for s in since for n in s.uvs})
-        if kind == 'unexplained' and evidence.get('ambiguous') and len(pair) == 2 and \
-                evidence.get('cameras without the arm', 0.0) > 1.0:
-            # Two cameras that disagree with each other (not only with the arm), each of
-            # which a rigid change explains, and an arm too loose to say which: one of them
-            # changed.  Both are recalibrated from their new views - what a calibration of the
-            # part after the change would give - rather than keep one's old views on a guess.
-            event = ChangeEvent('camera', name, onset, int(stamp_ns), stat, self.threshold,
-                                len(since), evidence, None, self.model,
-                                [n for n in pair if n != name])
-            for n in pair:
-                self.model = self.model.without(n)
-                self.windows.pop(n, None)
-            self._clear()
-            return event
         if kind == 'camera':
             # Confirm before declaring: a moved camera's new views are explained by a new
             # pose (and focal length); a burst of bad detections is not.
