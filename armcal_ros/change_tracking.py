@@ -25,8 +25,8 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from armcal_ros.core.change import (ARM_SIGMA_FLOOR, ChangeEvent, ChangeMonitor,
-                                    ChangeSettings, PredictionModel, reference_scales,
-                                    size_change, View)
+                                    ChangeSettings, joint_subset, PredictionModel,
+                                    reference_scales, size_change, View)
 from armcal_ros.io.calib_files import atomic_write_text
 
 CHANGES_FILE = 'changes.json'
@@ -141,14 +141,10 @@ class ChangeTracker:
         # the fit has pulled in: there the parameters' uncertainty does not show, so it is
         # left out of the scale and added for the new views only.
         scales = reference_scales(PredictionModel(cams, sig, arm), points, obs)
-        joint = None
-        if joint_covariance is not None:
-            names, C = joint_covariance
-            keep = [i for i, (c, _) in enumerate(names) if c in cams]
-            joint = ([names[i] for i in keep], np.asarray(C)[np.ix_(keep, keep)])
         model = PredictionModel(cams, sig, arm, {k: v for k, v in
                                                  (parameter_covariance or {}).items()
-                                                 if k in cams}, joint)
+                                                 if k in cams},
+                                joint_subset(joint_covariance, cams))
         return ChangeMonitor(model, scales, self.settings)
 
     def observe(self, sample) -> Optional[ChangeEvent]:

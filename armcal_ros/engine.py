@@ -712,7 +712,7 @@ class CalibrationEngine:
         if adj is not None and adj.points is not None and len(adj.points) == len(points):
             arm = float(np.sqrt(np.mean(np.sum((adj.points - points) ** 2, axis=1)) / 3.0))
         cal.hyperparameters['arm_sigma_mm'] = 1e3 * arm
-        blocks, joint = {}, ([], [])
+        blocks, joint, rows = {}, None, []
         if adj is not None and adj.covariance is not None:
             names = list(adj.parameter_names)
             for cam in cal.cameras:
@@ -720,12 +720,10 @@ class CalibrationEngine:
                 if idx and np.all(np.isfinite(adj.covariance[np.ix_(idx, idx)])):
                     blocks[cam] = ([names[i][len(cam) + 1:] for i in idx],
                                    adj.covariance[np.ix_(idx, idx)])
-                    joint[0].extend((cam, names[i][len(cam) + 1:]) for i in idx)
-                    joint[1].extend(idx)
-        if joint[1] and np.all(np.isfinite(adj.covariance[np.ix_(joint[1], joint[1])])):
-            joint = (joint[0], adj.covariance[np.ix_(joint[1], joint[1])])
-        else:
-            joint = None
+                    rows.extend((i, cam) for i in idx)
+            C = adj.covariance[np.ix_([i for i, _ in rows], [i for i, _ in rows])]
+            if rows and np.all(np.isfinite(C)):
+                joint = ([(cam, names[i][len(cam) + 1:]) for i, cam in rows], C)
         with self._lock:
             jobs = self.changes.accepted(cal)
         sized = self.changes.size(jobs, arrays)
