@@ -237,9 +237,9 @@ def _run_simulate(args):
     with open(params, 'w', encoding='utf-8') as f:
         f.write(f'# calibrator parameters for this simulated cell ({args.cell}):\n'
                 f'#   armcal calibrate {args.output} --params {params}\n')
-        yaml.safe_dump({'armcal': {'ros__parameters': cell_parameters(settings, compressed)}},
-                       f, sort_keys=False)
-    write_true_geometry(result, os.path.dirname(params), cell_parameters(settings, compressed))
+        values = cell_parameters(settings, compressed)
+        yaml.safe_dump({'armcal': {'ros__parameters': values}}, f, sort_keys=False)
+    write_true_geometry(result, os.path.dirname(params), values)
     if live:
         print('', file=sys.stderr)
     if not args.quiet:

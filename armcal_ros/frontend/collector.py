@@ -284,8 +284,8 @@ class SampleCollector:
             samples, dropped = self.static_spots.filter(samples)
             for cam in dropped:
                 self._count('observations_static',
-                            f'{cam}: a view that stayed within {STATIC_PX:g} px of the last '
-                            'while the arm moved (a fixed spot taken for the marker)')
+                            f'{cam}: a view within {STATIC_PX:g} px of one of its last while '
+                            'the arm moved (a fixed spot taken for the marker)')
             self.counts['samples_static'] = self.static_spots.counts['samples_static']
         return samples
 
