@@ -48,10 +48,16 @@ def _add_simulate(p):
     p.add_argument('--refocus', action='append', default=[], metavar='CAM:TIME:PERCENT',
                    help='change camera CAM\'s focal length (fx, fy) by PERCENT %% TIME s into '
                         'the session (repeatable)')
+    from armcal_ros.sim.cells import AMBIENT, LAMP_HEIGHT_M, LIGHTINGS
+    p.add_argument('--lighting', default='realistic', choices=LIGHTINGS,
+                   help=f'realistic (default): the marker, a matte ball, lit by one lamp '
+                        f'{LAMP_HEIGHT_M:g} m above the workspace\'s centre, its far side '
+                        f'keeping {AMBIENT:g} of the full brightness; uniform: a ball that '
+                        f'glows alike from every side (--lamp and --led replace either)')
     p.add_argument('--lamp', type=number_arg(float, -1000.0, 1000.0), nargs=3, default=None,
                    metavar=('X', 'Y', 'Z'),
                    help='light the marker, a matte ball, by one lamp at X Y Z (m, base frame) '
-                        'instead of letting it glow alike from every side')
+                        'instead of the realistic lamp')
     p.add_argument('--led', type=number_arg(float, -1000.0, 1000.0), nargs=3, default=None,
                    metavar=('AX', 'AY', 'AZ'),
                    help='make the marker an LED in a diffusing ball pointing along AX AY AZ '
@@ -61,8 +67,8 @@ def _add_simulate(p):
                    help='with --led: the exponent m of its beam, cos^m of the angle off its '
                         'axis (1: a Lambertian LED; larger: narrower; default 1)')
     p.add_argument('--ambient', type=number_arg(float, 0.0, 1.0), default=0.25,
-                   help='with --lamp or --led: the fraction of the full brightness the '
-                        'ball\'s unlit side keeps (default 0.25)')
+                   help='a lit marker (realistic, --lamp or --led): the fraction of the full '
+                        'brightness the ball\'s unlit side keeps (default 0.25)')
     p.add_argument('--stamp-latency', action='append', default=[], metavar='CAM:SECONDS',
                    help='camera CAM\'s driver stamps each image SECONDS after its exposure '
                         '(repeatable; the ground truth keeps the exposure times)')
@@ -167,7 +173,9 @@ def _run_simulate(args):
     compressed = cell.compressed if args.compressed is None else \
         (None if args.compressed == 'none' else args.compressed)
     encoding = args.encoding or cell.encoding
-    settings = cell.sim_settings(error_model=args.error_model)
+    own_light = args.lamp is not None or args.led is not None
+    settings = cell.sim_settings('uniform' if own_light else args.lighting,
+                                 error_model=args.error_model)
     changes = tuple(_camera_change(option, text, settings.camera_names, args.duration)
                     for option, texts in (('--knock', args.knock), ('--refocus', args.refocus))
                     for text in texts)
@@ -175,6 +183,9 @@ def _run_simulate(args):
         settings = dataclasses.replace(settings, camera_changes=changes)
     if args.lamp is not None and args.led is not None:
         raise ValueError('--lamp and --led are two kinds of marker: give one')
+    if settings.sensor.lamp is not None:
+        settings = dataclasses.replace(settings, sensor=dataclasses.replace(
+            settings.sensor, ambient=args.ambient))
     if args.lamp is not None:
         settings = dataclasses.replace(settings, sensor=dataclasses.replace(
             settings.sensor, lamp=tuple(args.lamp), ambient=args.ambient))

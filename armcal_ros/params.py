@@ -212,16 +212,17 @@ PARAMS = [
           'and subtract it before the sphere search: clutter and static look-alikes (lamps, '
           'bolt heads) vanish; a marker parked for about 120 images becomes scenery until it '
           'moves'),
-    Param('sphere_centre', 'string', 'centroid',
-          'how the sphere\'s centre is measured: centroid (intensity-weighted; right for a '
-          'ball that glows alike from every side, an LED in a diffuser) or shaded (a fit of '
-          'a shaded ball - outline, one lamp from any side, ambient, blur - whose centre does '
-          'not move with the light; for a matte or painted ball under the cell\'s lamps; '
-          'about twice the noise of the centroid and 1-2 ms per still frame) or '
-          'shaded_pooled (the same fit, but each view solved at its centroid plus the '
-          'light\'s shift of the centroid pooled over the camera\'s views at nearby places: '
-          'the centroid\'s noise without its bias, for light fixed in the cell; not for an '
-          'LED whose bright side turns with the tool)',
+    Param('sphere_centre', 'string', 'shaded_pooled',
+          'how the sphere\'s centre is measured: shaded_pooled (default: a fit of a shaded '
+          'ball - outline, one lamp from any side, ambient, blur - at every still frame, and '
+          'each view solved at its intensity centroid plus the light\'s shift of the '
+          'centroid pooled over the camera\'s views at nearby places: the centroid\'s noise '
+          'without its bias under the cell\'s lights; where the shift is no function of the '
+          'place - an LED whose bright side turns with the tool - the fitted centres are '
+          'kept; 2-3 ms per still frame) or shaded (the per-view fit alone: about twice the '
+          'centroid\'s noise) or centroid (intensity-weighted, 0.2 ms: right only for a ball '
+          'that glows alike from every side; half a pixel off towards the lamp for a matte '
+          'ball under one)',
           _one_of(SPHERE_CENTRES)),
     Param('aruco_dictionary', 'string', 'DICT_4X4_50', 'ArUco dictionary (cv2.aruco name)'),
     Param('aruco_id', 'int', -1, 'ArUco id of the marker (-1: any)'),

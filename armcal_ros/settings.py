@@ -173,7 +173,7 @@ class DetectorSettings:
     aruco_dictionary: str = 'DICT_4X4_50'
     aruco_id: Optional[int] = None
     max_views_per_dwell: int = 3
-    sphere_centre: str = 'centroid'
+    sphere_centre: str = 'shaded_pooled'
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,9 @@ Each cell and seed is simulated once per variant (the same trajectory and errors
 draw from their own random streams) and run through the whole pipeline (`armcal calibrate`,
 `auto`); the cameras are scored against the simulator's (shape, absolute, focal length; 500
 fresh points triangulated).  The question: does the front end's pooling of still frames cope,
-or does an effect show in the cameras?
+or does an effect show in the cameras?  The marker glows alike from every side
+(``--lighting uniform``) so that only these effects act; bench/realism.py puts them together
+with the lamp.
 
 Usage: python bench/arm_effects.py [--seeds 2] [--duration 90] [--processes 2]
 Writes docs/BENCHMARKS.md (section "arm-effects") and docs/bench/arm_effects.json.
@@ -68,7 +70,7 @@ def case(args):
             bag = os.path.join(tmp, f'v{k}')
             assert armcal(['simulate', '--cell', cell, '--seed', str(seed), '--duration',
                            str(duration), '--output', bag, '--no-zstd', '--quiet',
-                           *opts]) == 0
+                           '--lighting', 'uniform', *opts]) == 0
             params = os.path.join(bag, 'ground_truth', 'params.yaml')
             if overrides:
                 with open(params) as f:

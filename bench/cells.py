@@ -10,6 +10,11 @@ once and solved with every noise model; scores are against the simulator's camer
 triangulate, so its figure is the projection error of those points).  The front-end table
 counts pooled observations more than 1 px from the true projection (false detections kept).
 
+Each cell is recorded as a real cell looks (``lighting='realistic'``: a matte ball under one
+lamp above the cell) and run with the node's default centre (``sphere_centre:
+shaded_pooled``), then with the intensity centroid (the default before 2026-12-03); the same
+trajectory lit uniformly with the centroid is the earlier table's condition, kept beside them.
+
 Usage: python bench/cells.py [--seed 0] [--duration 180] [--cells ur5-2cam ...]
 """
 
@@ -35,29 +40,35 @@ from armcal_ros.sim.output import write_sim_bag  # noqa: E402
 
 MODELS = ('fixed', 'independent', 'correlated', 'kinematic', 'hybrid', 'auto')
 DEFAULT_CELLS = [k for k in CELLS if k != 'puma-3cam']   # the demo cell: bench/bag_accuracy.py
+#: (lighting, sphere_centre): the product on a realistic cell first (every model is solved and
+#: tabled for it), then the old centre on it, then the uniformly lit recording.
+VARIANTS = (('realistic', 'shaded_pooled'), ('realistic', 'centroid'), ('uniform', 'centroid'))
 
 
-def run_cell(name, seed, duration, tmp):
+def run_cell(name, seed, duration, tmp, lighting, centre):
     """Simulate ``name``, run the pipeline, solve with every model; return the raw figures."""
     cell = CELLS[name]
-    sim = cell.sim_settings()
-    bag = os.path.join(tmp, name)
-    write_sim_bag(simulate_cell(cell.scenario, seed, duration, sim), bag,
-                  compressed=cell.compressed, encoding=cell.encoding)
-    params = os.path.join(tmp, name + '.yaml')
+    sim = cell.sim_settings(lighting)
+    bag = os.path.join(tmp, f'{name}-{lighting}')
+    if not os.path.exists(bag):
+        write_sim_bag(simulate_cell(cell.scenario, seed, duration, sim), bag,
+                      compressed=cell.compressed, encoding=cell.encoding)
+    params = os.path.join(tmp, f'{name}-{lighting}-{centre}.yaml')
+    p = cell_parameters(sim, cell.compressed)
+    p.setdefault('sphere_centre', centre)
     with open(params, 'w') as f:
-        yaml.safe_dump({'armcal': {'ros__parameters': cell_parameters(
-            sim, cell.compressed)}}, f)
+        yaml.safe_dump({'armcal': {'ros__parameters': p}}, f)
     settings = load_settings(params)
     front = collect_samples(bag, settings)
     gt = os.path.join(bag, 'ground_truth')
     with np.load(os.path.join(gt, 'markers.npz')) as truth_frames:
         det = detection_pass(bag, settings, dict(truth_frames))
-    out = dict(description=cell.description, scenario=cell.scenario, counts=front.counts,
+    out = dict(description=cell.description, scenario=cell.scenario, lighting=lighting,
+               sphere_centre=settings.detector.sphere_centre, counts=front.counts,
                samples=len(front.store), front_end_s=front.time_s, detection=det, models={})
     for model in MODELS:
         res = solve_and_write(front, with_noise_model(settings, model),
-                              os.path.join(tmp, name + '-out', model))
+                              os.path.join(tmp, f'{name}-{lighting}-{centre}-out', model))
         cal = res.outcome.calibration
         sc = compare({k: c.camera for k, c in cal.cameras.items()}, gt)
         out['models'][model] = dict(
@@ -96,39 +107,61 @@ def main(argv=None):
     raw = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.cells:
-            raw[name] = run_cell(name, args.seed, args.duration, tmp)
-    front_rows, rows = [], []
-    for name, r in raw.items():
+            for lighting, centre in VARIANTS:
+                raw[f'{name} / {lighting} / {centre}'] = run_cell(
+                    name, args.seed, args.duration, tmp, lighting, centre)
+    front_rows, rows, auto_rows = [], [], []
+    for key, r in raw.items():
+        name = key.split(' / ')[0]
         c, k, d = r['counts'], r['kept'], r['detection']
-        front_rows.append([name, r['description'], r['scenario'], c.get('frames', 0),
+        front_rows.append([name, r['lighting'], r['sphere_centre'], c.get('frames', 0),
                            f'{100 * d["recall"]:.2f} %', d['false_detections'],
                            c.get('frames_still', 0), c.get('detections', 0), r['samples'],
                            f'{k["false_kept_before_gating"]} of {k["observations"]}',
                            f'{k["median_observation_error_px"]:.3f}',
                            k['gated_by_adjustment'], f'{r["front_end_s"]:.1f}'])
+        m = r['models']['auto']
+        auto_rows.append([name, r['lighting'], r['sphere_centre'], m['chosen'],
+                          _mm(m['absolute_mm']), _mm(m['shape_mm']), f'{m["centre_mm"]:.2f}',
+                          f'{m["focal_pct"]:.3f}', f'{m["projection_px"]:.3f}'])
+        if (r['lighting'], r['sphere_centre']) != VARIANTS[0]:
+            continue
         for model, m in r['models'].items():
             label = model + (f' ({m["chosen"]})' if m['chosen'] else '')
             rows.append([name, label, _mm(m['absolute_mm']), _mm(m['shape_mm']),
                          f'{m["centre_mm"]:.2f}', f'{m["focal_pct"]:.3f}',
                          f'{m["projection_px"]:.3f}', f'{m["solve_s"]:.2f}'])
+    descriptions = {key.split(' / ')[0]: r['description'] for key, r in raw.items()}
     md = ['## Cells it was not developed on (bench/cells.py)', '',
           f'Other arms, camera names and counts and image transports ({args.duration:.0f} s of '
           f'simulated teleoperation, seed {args.seed}), through the offline pipeline with only '
           'the parameters that describe the cell (`armcal_ros.sim.cells`); joints published in '
-          'a random order with an extra gripper joint. Recall and false detections: the '
+          'a random order with an extra gripper joint. Each cell as a real one looks '
+          '(realistic: its matte ball lit by one lamp 1.5 m above the workspace, 25 % '
+          'ambient) with the default centre (`sphere_centre: shaded_pooled`) and with the '
+          'intensity centroid, and the same trajectory lit uniformly with the centroid (the '
+          'condition of this table before 2026-12-03). Recall and false detections: the '
           'sphere detector on every frame against the true projections (as bench/pipeline.py: '
           'within 1 px of a visible, unoccluded marker; further than 2 px, or any detection '
           'where the marker is hidden). Scored against the simulator\'s cameras: '
           'triangulation of 500 fresh workspace points (n/a with one camera) and their '
           f'projection error (estimated vs true camera). Measured on {machine()}, '
-          'single-threaded BLAS.', '',
-          table(['cell', 'what', 'scenario', 'frames', 'recall (every frame)',
-                 'false detections', 'still', 'detections', 'samples',
-                 'kept > 1 px from truth', 'median obs. error px', 'gated', 'front end s'],
-                front_rows), '',
-          table(['cell', 'model', 'absolute mm', 'shape mm', 'centre mm', 'focal %',
-                 'projection px', 'solve s'], rows), '', 'What `auto` chose and why:', '']
-    md += [f'- {name}: {r["models"]["auto"]["reason"]}' for name, r in raw.items()]
+          'single-threaded BLAS.', '']
+    md += [f'- {name}: {d}' for name, d in descriptions.items()]
+    md += ['', table(['cell', 'lighting', 'sphere_centre', 'frames', 'recall (every frame)',
+                      'false detections', 'still', 'detections', 'samples',
+                      'kept > 1 px from truth', 'median obs. error px', 'gated',
+                      'front end s'], front_rows), '',
+           '`auto` under each lighting and centre:', '',
+           table(['cell', 'lighting', 'sphere_centre', 'auto chose', 'absolute mm', 'shape mm',
+                  'centre mm', 'focal %', 'projection px'], auto_rows), '',
+           f'Every model on the realistic recording with the default centre '
+           f'(`{VARIANTS[0][1]}`):', '',
+           table(['cell', 'model', 'absolute mm', 'shape mm', 'centre mm', 'focal %',
+                  'projection px', 'solve s'], rows), '',
+           'What `auto` chose and why (realistic, default centre):', '']
+    md += [f'- {key.split(" / ")[0]}: {r["models"]["auto"]["reason"]}'
+           for key, r in raw.items() if (r['lighting'], r['sphere_centre']) == VARIANTS[0]]
     md += ['', HISTORY]
     text = '\n'.join(md)
     print(text)

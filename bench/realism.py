@@ -40,7 +40,7 @@ from armcal_ros.params import defaults  # noqa: E402
 
 from armcal_ros.frontend.detectors import make_detector  # noqa: E402
 from armcal_ros.sim.cell import simulate_cell  # noqa: E402
-from armcal_ros.sim.cells import CELLS  # noqa: E402
+from armcal_ros.sim.cells import AMBIENT, CELLS, LAMP_HEIGHT_M, realistic_lamp  # noqa: E402
 
 CELL_NAMES = ('puma-3cam', 'ur5-2cam')
 #: The sphere detector's centres (``sphere_centre``): intensity centroid, shaded-ball fit.
@@ -53,26 +53,18 @@ PIPELINE_RUNS = (('uniform', 'uniform', False, 'centroid'),
                  ('lamp, shaded fit', 'lamp', False, 'shaded'),
                  ('uniform, shaded fit, shift pooled', 'uniform', False, 'shaded_pooled'),
                  ('lamp, shaded fit, shift pooled', 'lamp', False, 'shaded_pooled'))
-LAMP_HEIGHT = 1.5          # m above the workspace centre
-AMBIENT = 0.25
 MAX_MARKER_SPEED = defaults()['max_marker_speed']      # m/s, the front end's stillness bound
-
-
-def lamp_of(settings):
-    """Return the lamp's base-frame position: LAMP_HEIGHT above the workspace centre."""
-    centre = 0.5 * (np.asarray(settings.workspace_min) + np.asarray(settings.workspace_max))
-    return tuple(centre + np.array([0.0, 0.0, LAMP_HEIGHT]))
 
 
 def detect_session(args):
     """Return per camera the detection errors (vectors) of one session under one lighting."""
     cell, seed, duration, lighting = args
     c = CELLS[cell]
-    settings = c.sim_settings(duration=duration)
+    settings = c.sim_settings('uniform', duration=duration)
     sim = simulate_cell(c.scenario, seed, duration, settings)
     sensor = settings.sensor
     if lighting == 'lamp':
-        sensor = replace(sensor, lamp=lamp_of(settings), ambient=AMBIENT)
+        sensor = replace(sensor, lamp=realistic_lamp(settings), ambient=AMBIENT)
     f = sim.frames
     detectors = {centre: {cam.name: make_detector('sphere', centre=centre)
                           for cam in sim.cameras} for centre in CENTRES}
@@ -102,10 +94,11 @@ def detect_session(args):
 def pipeline_case(args):
     """One cell and seed through the whole pipeline: uniform, lit, lit and corrected."""
     cell, seed, duration = args
-    lamp = lamp_of(CELLS[cell].sim_settings())
+    lamp = realistic_lamp(CELLS[cell].sim_settings())
     out = dict(cell=cell, seed=seed)
     with tempfile.TemporaryDirectory() as tmp:
-        for label, extra in (('uniform', []), ('lamp', ['--lamp', *map(str, lamp)])):
+        for label, extra in (('uniform', ['--lighting', 'uniform']),
+                             ('lamp', ['--lamp', *map(str, lamp)])):
             bag = os.path.join(tmp, label)
             assert armcal(['simulate', '--cell', cell, '--seed', str(seed), '--duration',
                            str(duration), '--output', bag, '--no-zstd', '--quiet', *extra]) == 0
@@ -115,8 +108,8 @@ def pipeline_case(args):
                     continue
                 doc = yaml.safe_load(yaml.safe_dump(base))
                 p_doc = doc['armcal']['ros__parameters']
-                if not lamp_given:
-                    p_doc['marker_lamp'] = []
+                p_doc['marker_lamp'] = [float(v) for v in lamp] if lamp_given else []
+                p_doc['marker_radius'] = CELLS[cell].sim_settings().marker_radius
                 p_doc['sphere_centre'] = centre
                 p = os.path.join(tmp, 'params.yaml')
                 with open(p, 'w') as f:
@@ -139,7 +132,7 @@ LAMP_OFFSETS = ((0.0, 0.0, 1.0), (0.0, 0.0, -0.6), (0.95, 0.0, -0.5), (0.0, 1.0,
 def lamp_search(duration):
     """Calibrate one lit recording given no lamp, the true one and wrong ones (can data tell)."""
     cell = 'puma-3cam'
-    lamp = np.array(lamp_of(CELLS[cell].sim_settings()))
+    lamp = np.array(realistic_lamp(CELLS[cell].sim_settings()))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         bag = os.path.join(tmp, 'bag')
@@ -150,8 +143,9 @@ def lamp_search(duration):
             (f'true + {off}', list(lamp + off)) for off in LAMP_OFFSETS]
         for label, given in tries:
             doc = yaml.safe_load(yaml.safe_dump(base))
-            doc['armcal']['ros__parameters'].update(marker_lamp=[float(v) for v in given],
-                                                    noise_model='kinematic')
+            doc['armcal']['ros__parameters'].update(
+                marker_lamp=[float(v) for v in given], sphere_centre='centroid',
+                marker_radius=CELLS[cell].sim_settings().marker_radius, noise_model='kinematic')
             params = os.path.join(tmp, 'p.yaml')
             with open(params, 'w') as f:
                 yaml.safe_dump(doc, f)
@@ -187,7 +181,8 @@ def all_effects_case(args):
         bags = {}
         for lit in (False, True):
             bag = os.path.join(tmp, f'lit{int(lit)}')
-            extra = ['--lamp', *map(str, lamp_of(st)), *together] if lit else []
+            extra = ['--lamp', *map(str, realistic_lamp(st)), *together] if lit else \
+                ['--lighting', 'uniform']
             assert armcal(['simulate', '--cell', cell, '--seed', str(seed), '--duration',
                            str(duration), '--output', bag, '--no-zstd', '--quiet',
                            *extra]) == 0
@@ -299,7 +294,7 @@ def main(argv=None):
           f'slower than max_marker_speed = {MAX_MARKER_SPEED} m/s over the exposure: what '
           'the front end detects) rendered '
           'twice: a sphere glowing alike from every side (uniform), and a matte ball lit by '
-          f'one lamp {LAMP_HEIGHT} m above the workspace centre with {AMBIENT:.0%} ambient '
+          f'one lamp {LAMP_HEIGHT_M} m above the workspace centre with {AMBIENT:.0%} ambient '
           '(lamp); the sphere detector in frame order, with each centre (`sphere_centre`): '
           'the background-subtracted intensity centroid, and the fit of a shaded ball '
           '(frontend/detectors/shaded_sphere.py). Mean shift: the length of '

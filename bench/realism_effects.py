@@ -26,7 +26,6 @@ from multiprocessing import Pool
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _report import machine, table, write_json, write_section  # noqa: E402
-from realism import lamp_of  # noqa: E402
 
 import numpy as np  # noqa: E402
 import yaml  # noqa: E402
@@ -36,7 +35,7 @@ from armcal_ros.compare import compare  # noqa: E402
 from armcal_ros.engine import pooled_light_arrays  # noqa: E402
 from armcal_ros.frontend.store import SampleStore  # noqa: E402
 from armcal_ros.io.calib_files import read_cameras  # noqa: E402
-from armcal_ros.sim.cells import CELLS  # noqa: E402
+from armcal_ros.sim.cells import CELLS, realistic_lamp  # noqa: E402
 
 CELL_NAMES = ('puma-3cam', 'ur5-2cam')
 CENTRES = ('centroid', 'shaded', 'shaded_pooled')
@@ -44,7 +43,7 @@ CENTRES = ('centroid', 'shaded', 'shaded_pooled')
 
 def effects(cell):
     """Return [(label, `armcal simulate` options)]: none, then each effect alone."""
-    lamp = [str(v) for v in lamp_of(CELLS[cell].sim_settings())]
+    lamp = [str(v) for v in realistic_lamp(CELLS[cell].sim_settings())]
     return [
         ('none', []),
         ('lamp 1.5 m above, 25 % ambient', ['--lamp', *lamp]),
@@ -95,7 +94,8 @@ def case(args):
     with tempfile.TemporaryDirectory() as tmp:
         bag = os.path.join(tmp, 'bag')
         assert armcal(['simulate', '--cell', cell, '--seed', str(seed), '--duration',
-                       str(duration), '--output', bag, '--no-zstd', '--quiet', *opts]) == 0
+                       str(duration), '--output', bag, '--no-zstd', '--quiet',
+                       '--lighting', 'uniform', *opts]) == 0
         gt = os.path.join(bag, 'ground_truth')
         base = yaml.safe_load(open(os.path.join(gt, 'params.yaml')))
         for centre in CENTRES:

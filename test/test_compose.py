@@ -78,11 +78,15 @@ def test_decoded_targets_need_one_frame_a_sphere_two():
 
 def test_a_lit_marker_needs_its_radius_and_a_sphere():
     from armcal_ros.params import check_value
-    lit = engine_settings(_settings(marker_lamp=[0.5, 0.0, 1.5], marker_radius=0.005))
+    lit = engine_settings(_settings(marker_lamp=[0.5, 0.0, 1.5], marker_radius=0.005,
+                                    sphere_centre='centroid'))
     assert lit.marker_light == ((0.5, 0.0, 1.5), 0.25, 0.005)
     assert engine_settings(_settings()).marker_light is None
     with pytest.raises(ValueError, match='marker_radius'):
-        engine_settings(_settings(marker_lamp=[0.5, 0.0, 1.5]))
+        engine_settings(_settings(marker_lamp=[0.5, 0.0, 1.5], sphere_centre='centroid'))
+    # The default centre is a fitted one: a lamp given with it is refused, not ignored.
+    with pytest.raises(ValueError, match='needs sphere_centre centroid'):
+        engine_settings(_settings(marker_lamp=[0.5, 0.0, 1.5], marker_radius=0.005))
     with pytest.raises(ValueError, match='marker_lamp'):
         check_value('marker_lamp', [0.5, 0.0])
     with pytest.raises(ValueError, match='marker_ambient'):
@@ -95,7 +99,8 @@ def test_a_fitted_centre_is_not_lamp_corrected_and_pooling_is_switched_by_the_ce
                                   sphere_centre='shaded'))
     assert engine_settings(_settings(sphere_centre='shaded_pooled')).pool_light_shift
     assert not engine_settings(_settings(sphere_centre='shaded')).pool_light_shift
-    assert not engine_settings(_settings()).pool_light_shift
+    assert not engine_settings(_settings(sphere_centre='centroid')).pool_light_shift
+    assert engine_settings(_settings()).pool_light_shift       # the default
     from armcal_ros.compose import build_detectors
     det = build_detectors(_settings(sphere_centre='shaded_pooled'), ['cam1', 'cam2'])
     assert [d.centre for d in det.values()] == ['shaded', 'shaded']

@@ -167,7 +167,7 @@ def test_the_detector_follows_an_led_from_dwell_to_dwell():
     """
     from armcal_ros.sim.cells import CELLS
     cell = CELLS['puma-3cam']
-    sim = simulate_cell(cell.scenario, 0, 60.0, cell.sim_settings(duration=60.0))
+    sim = simulate_cell(cell.scenario, 0, 60.0, cell.sim_settings('uniform', duration=60.0))
     sensor = replace(sim.settings.sensor, led_axis=(0.0, 0.0, 1.0))
     f = sim.frames
     speed = np.linalg.norm(f.exposure_markers[:, -1] - f.exposure_markers[:, 0], axis=1) \

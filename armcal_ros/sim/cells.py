@@ -16,13 +16,23 @@ several that differ from the demo in everything a user's cell can differ in (ben
   spurious highlights, half of them near the marker.
 
 Every cell publishes its joints in a random order with an extra gripper joint (as
-:func:`~armcal_ros.sim.cell.simulate_cell` always does).  A cell names only geometry and
-transport; the calibrator's own parameters for it come from :func:`cell_parameters` (the
-camera names, topics and URDF a user would write into their parameter file - nothing tuned).
+:func:`~armcal_ros.sim.cell.simulate_cell` always does), and its marker - a matte ball - is lit
+as in a real cell (``lighting='realistic'``, the default): by one lamp
+:data:`LAMP_HEIGHT_M` above the workspace's centre, its far side keeping :data:`AMBIENT` of the
+full brightness from the room.  Each camera then sees the lit side at another angle and the
+ball's intensity centroid moves towards it by about half a pixel (docs/BENCHMARKS.md,
+*realism*).  ``lighting='uniform'`` is the ideal ball that glows alike from every side.
+
+A cell names only geometry, light and transport; the calibrator's own parameters for it come
+from :func:`cell_parameters` (the camera names, topics and URDF a user would write into their
+parameter file - nothing tuned).
 """
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Optional
+
+import numpy as np
 
 from armcal_ros.sim.cell import bundled_urdf, default_urdf_path, SimSettings
 from armcal_ros.sim.output import image_topic
@@ -43,10 +53,49 @@ class Cell:
     compressed: Optional[str] = None     # None (sensor_msgs/Image), 'png' or 'jpeg'
     encoding: str = 'mono8'
 
-    def sim_settings(self, **overrides) -> SimSettings:
-        """Return the SimSettings of this cell (``overrides`` replace fields)."""
-        return SimSettings(**{'urdf_path': bundled_urdf(self.urdf), **self.settings,
-                              **overrides})
+    def sim_settings(self, lighting='realistic', **overrides) -> SimSettings:
+        """
+        Return the SimSettings of this cell (``overrides`` replace fields).
+
+        ``lighting`` one of :data:`LIGHTINGS` (:func:`with_lighting`).
+        """
+        return with_lighting(SimSettings(**{'urdf_path': bundled_urdf(self.urdf),
+                                            **self.settings, **overrides}), lighting)
+
+
+#: How a cell's marker is lit: ``realistic`` (a matte ball under one lamp above the cell) or
+#: ``uniform`` (a ball that glows alike from every side: its centroid is its centre).
+LIGHTINGS = ('realistic', 'uniform')
+#: The realistic lamp's height above the workspace's centre (m): a ceiling or gantry light
+#: over a cell whose cameras stand 1-2 m from the arm.
+LAMP_HEIGHT_M = 1.5
+#: The fraction of the full brightness a ball's unlit side keeps from the room's other light
+#: (walls, windows): a quarter is an ordinary indoor contrast between lit and shaded sides.
+AMBIENT = 0.25
+
+
+def realistic_lamp(settings: SimSettings) -> tuple:
+    """Return the realistic lamp's base-frame position: :data:`LAMP_HEIGHT_M` above the centre."""
+    centre = 0.5 * (np.asarray(settings.workspace_min, float) +
+                    np.asarray(settings.workspace_max, float))
+    return tuple(float(v) for v in centre + np.array([0.0, 0.0, LAMP_HEIGHT_M]))
+
+
+def with_lighting(settings: SimSettings, lighting: str) -> SimSettings:
+    """
+    Return ``settings`` with its marker lit as ``lighting`` says (one of :data:`LIGHTINGS`).
+
+    ``realistic`` hangs :func:`realistic_lamp` with :data:`AMBIENT` unless the settings light
+    the marker already (a lamp or an LED of their own); ``uniform`` takes any light away.
+    """
+    if lighting not in LIGHTINGS:
+        raise ValueError(f'lighting must be one of {list(LIGHTINGS)}, got {lighting!r}')
+    sensor = settings.sensor
+    if lighting == 'uniform':
+        sensor = dataclasses.replace(sensor, lamp=None, led_axis=None)
+    elif sensor.lamp is None and sensor.led_axis is None:
+        sensor = dataclasses.replace(sensor, lamp=realistic_lamp(settings), ambient=AMBIENT)
+    return dataclasses.replace(settings, sensor=sensor)
 
 
 CELLS = {
@@ -87,9 +136,9 @@ def cell_parameters(settings: SimSettings, compressed=None, noise_model='auto') 
     Return the calibrator parameters (``ros__parameters``) matching a simulated cell.
 
     Only what describes the cell: URDF, marker link, joint-state and image topics, camera
-    names, and when the ball is lit by a lamp, where the lamp hangs and the ball's size (what
-    a user of that cell would know), for an LED the shaded-ball centre; everything else keeps
-    the node's defaults.
+    names, and for an LED (whose bright side turns with the tool) the per-view shaded-ball
+    centre; everything else keeps the node's defaults - a lamp's place too, which a user
+    seldom knows and the default centre (``shaded_pooled``) does not need.
     """
     urdf = settings.urdf_path or default_urdf_path()
     names = list(settings.camera_names)
@@ -98,14 +147,11 @@ def cell_parameters(settings: SimSettings, compressed=None, noise_model='auto') 
                marker_type='sphere', joint_states_topic='/joint_states',
                camera_names=names, image_topics=[image_topic(n, compressed) for n in names],
                noise_model=noise_model)
-    if settings.sensor.lamp is not None:
-        out.update(marker_lamp=[float(v) for v in settings.sensor.lamp],
-                   marker_ambient=float(settings.sensor.ambient),
-                   marker_radius=float(settings.marker_radius))
     if settings.sensor.led_axis is not None:
         # An LED's bright side turns with the tool: no lamp to give, the per-view fit's centre.
         out.update(sphere_centre='shaded')
     return out
 
 
-__all__ = ['Cell', 'CELLS', 'cell_parameters', 'get_cell']
+__all__ = ['AMBIENT', 'Cell', 'CELLS', 'cell_parameters', 'get_cell', 'LAMP_HEIGHT_M', 'LIGHTINGS',
+           'realistic_lamp', 'with_lighting']
