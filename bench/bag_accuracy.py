@@ -6,12 +6,18 @@ same ranking survives the real front end (rendered images, sphere detection, tim
 stamp jitter, stillness, dwell pooling).  Cases: the bundled demo bag (`nongeometric`, 420 s) and a
 freshly simulated `mixed` bag.  Each bag's samples are collected once and solved with every noise
 model; scores are from `armcal_ros.compare` (500 fresh workspace points triangulated from their
-true projections).
+true projections).  Both bags light their marker, a matte ball, by one lamp above the cell
+(``--lighting realistic``) and run with the node's default centre (``shaded_pooled``).
 
-Usage: python bench/bag_accuracy.py [--duration 300] [--seed 0]
+With ``--uniform`` the same two sessions are simulated again under uniform light (a ball that
+glows alike from every side, the condition of every recording before 2026-12-03) and run with
+the intensity centroid: like with like, the same trajectories and errors.
+
+Usage: python bench/bag_accuracy.py [--duration 300] [--seed 0] [--uniform]
 """
 
 import argparse
+import dataclasses
 import os
 import sys
 import tempfile
@@ -21,6 +27,7 @@ import tempfile
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _report import machine, table, write_json, write_section  # noqa: E402
+from pipeline import uniform_twin  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -30,6 +37,7 @@ from armcal_ros.io.calib_files import read_cameras  # noqa: E402
 from armcal_ros.offline import collect_samples, solve_and_write  # noqa: E402
 from armcal_ros.settings import load_settings, with_noise_model  # noqa: E402
 from armcal_ros.sim.cell import simulate_cell  # noqa: E402
+from armcal_ros.sim.cells import CELLS  # noqa: E402
 from armcal_ros.sim.output import write_sim_bag  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -42,9 +50,12 @@ def all_z(cal, truth):
                      for v in z_scores(c.camera, c.std, truth[name]).values()])
 
 
-def run_bag(label, bag, params, out_dir):
+def run_bag(label, bag, params, out_dir, centre=None):
     """Collect once, solve with each model; return rows and raw numbers."""
     settings = load_settings(params)
+    if centre is not None:
+        settings = dataclasses.replace(settings, detector=dataclasses.replace(
+            settings.detector, sphere_centre=centre))
     front = collect_samples(bag, settings)
     truth = {c.name: c for c in read_cameras(os.path.join(bag, 'ground_truth'))[1]}
     rows, raw = [], {}
@@ -78,6 +89,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[1])
     ap.add_argument('--duration', type=float, default=300.0)
     ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--uniform', action='store_true',
+                    help='also both sessions lit uniformly, with the intensity centroid')
     args = ap.parse_args(argv)
     params = os.path.join(ROOT, 'config', 'demo.yaml')
     rows, raw = [], {}
@@ -86,14 +99,34 @@ def main(argv=None):
                                                 os.path.join(ROOT, 'bags', 'demo'), params, tmp)
         rows += r
         bag = os.path.join(tmp, 'mixed')
-        write_sim_bag(simulate_cell('mixed', seed=args.seed, duration=args.duration), bag)
+        write_sim_bag(simulate_cell('mixed', seed=args.seed, duration=args.duration,
+                                    settings=CELLS['puma-3cam'].sim_settings(
+                                        duration=args.duration)), bag)
         label = f'mixed, {args.duration:.0f} s, seed {args.seed}'
         r, raw[label] = run_bag(label, bag, params, tmp)
         rows += r
+        if args.uniform:
+            # The same sessions under uniform light with the centroid: the earlier condition.
+            twin = uniform_twin(os.path.join(ROOT, 'bags', 'demo'), tmp)
+            r, raw['demo, uniform light, centroid'] = run_bag(
+                'demo, uniform light, centroid', twin, params, tmp, 'centroid')
+            rows += r
+            bag = os.path.join(tmp, 'mixed-uniform')
+            write_sim_bag(simulate_cell('mixed', seed=args.seed, duration=args.duration,
+                                        settings=CELLS['puma-3cam'].sim_settings(
+                                            'uniform', duration=args.duration)), bag)
+            label = f'mixed, {args.duration:.0f} s, seed {args.seed}, uniform light, centroid'
+            r, raw[label] = run_bag(label, bag, params, tmp, 'centroid')
+            rows += r
     md = ['## Accuracy through the whole pipeline (bench/bag_accuracy.py)', '',
           'Simulated bags through detection, pairing and pooling, then every noise model on the '
           'same samples; scored against the simulator\'s cameras by triangulating 500 fresh '
-          f'workspace points. Measured on {machine()}, single-threaded BLAS. Every model '
+          'workspace points. Both bags\' marker is a matte ball lit by one lamp 1.5 m above '
+          'the workspace (realistic; the default centre, `sphere_centre: shaded_pooled`); '
+          'rows marked "uniform light, centroid" are the same sessions simulated with a ball '
+          'that glows alike from every side, run with the intensity centroid (the condition '
+          'before 2026-12-03). '
+          f'Measured on {machine()}, single-threaded BLAS. Every model '
           'estimates the image noise (the node\'s default, `pixel_sigma: 0`): `auto` from the '
           'free network, the others from their own residuals (variance factor, redundancy by '
           'leverage) - the column "noise px" says which value and where from, so the rows '
