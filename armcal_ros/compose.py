@@ -8,7 +8,7 @@ per camera, the :class:`~armcal_ros.frontend.collector.SampleCollector` (front e
 cannot be built raises ValueError naming the parameters.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Optional, Tuple
 
 import numpy as np
@@ -25,6 +25,7 @@ from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.frontend.store import SampleStore
 from armcal_ros.robot.kinematics import KinematicChain
 from armcal_ros.settings import Settings
+from armcal_ros.stamp_latency import LatencyTimer
 
 #: Two samples closer than this (m) are the same place (merged), whatever min_sample_spacing.
 SAME_POINT_TOLERANCE = 0.0005
@@ -43,6 +44,9 @@ class Pipeline:
     board: Optional[CharucoBoard]          # None for a point marker
     collector: SampleCollector
     engine: CalibrationEngine
+    #: Times each camera's stamps from the frames in motion (None where it does not apply:
+    #: :func:`latency_detectors`).
+    latency: Optional[LatencyTimer] = None
 
 
 def build_chain(settings: Settings, pose_input=None) -> Optional[KinematicChain]:
@@ -116,6 +120,22 @@ def build_detectors(settings: Settings, camera_names, board: Optional[CharucoBoa
             out[name] = make_detector('aruco', dictionary=det.aruco_dictionary,
                                       marker_id=det.aruco_id, corners=settings.target.tag_corners)
     return out
+
+
+def latency_detectors(settings: Settings, camera_names, chain):
+    """
+    Return {camera: Detector} of the marker's point for timing the stamps, or None.
+
+    None where stamp latency is not measured: no robot model (pose input), cameras on the arm,
+    a board.  A ball blurred by motion is not the shaded-ball model, but its intensity centroid
+    is where it was at mid-exposure; a tag is timed by its centre.
+    """
+    t = settings.target
+    if chain is None or t.eye_in_hand or t.marker_type not in ('sphere', 'aruco'):
+        return None
+    point_only = replace(settings, detector=replace(settings.detector, sphere_centre='centroid'),
+                         target=replace(t, aruco_size=0.0))
+    return build_detectors(point_only, list(camera_names))
 
 
 def min_frames_per_dwell(settings: Settings) -> int:
@@ -223,4 +243,7 @@ def build_pipeline(settings: Settings, log: Optional[Callable[[str], None]] = No
                                 cameras_on_link=settings.target.eye_in_hand,
                                 still_guard_s=fe.still_guard,
                                 stamp_latency_s=dict(fe.image_stamp_latency))
-    return Pipeline(chain, board, collector, build_engine(settings, chain, target))
+    timing = latency_detectors(settings, names, chain)
+    latency = None if timing is None else LatencyTimer(
+        timing, chain, settings.robot.marker_offset, min_marker_speed=fe.max_marker_speed)
+    return Pipeline(chain, board, collector, build_engine(settings, chain, target), latency)

@@ -28,7 +28,7 @@ from typing import Callable, Dict, Iterator, List, Optional
 import numpy as np
 
 from armcal_ros.change_tracking import ChangeTracker
-from armcal_ros.compose import build_detectors, build_engine, build_pipeline
+from armcal_ros.compose import build_engine, build_pipeline, latency_detectors
 from armcal_ros.core.target import pose_vector
 from armcal_ros.engine import SolveOutcome
 from armcal_ros.frontend.collector import SampleCollector, why_few_samples
@@ -44,7 +44,7 @@ from armcal_ros.io.rct_import import is_rct_folder, load_rct_folder, RctFormatEr
 from armcal_ros.io.results_files import write_calibration
 from armcal_ros.robot.kinematics import KinematicChain
 from armcal_ros.settings import load_settings, Settings, with_given_intrinsics
-from armcal_ros.stamp_latency import latency_report, measure_latencies
+from armcal_ros.stamp_latency import latency_differs, latency_report, measure_latencies
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 POSE_TYPES = ('geometry_msgs/msg/PoseStamped', 'geometry_msgs/msg/TransformStamped')
@@ -387,24 +387,13 @@ def _solve(front: FrontEnd, settings: Settings):
     return engine, outcome, report
 
 
-#: A measured stamp latency is applied (the samples paired again) when it differs from the one
-#: given (image_stamp_latency) by more than this (s) and three of its standard deviations: at
-#: the front end's speed bound (0.0375 m/s) 2 ms is 0.05 px at f = 800 px and 1.5 m.
-LATENCY_APPLY_S = 0.002
-
-
 def _measure_latency(recording, front, engine, outcome, settings):
     """Return {camera: LatencyEstimate} on ``recording``, or None where it does not apply."""
-    if recording is None or front.chain is None or settings.target.eye_in_hand or \
-            settings.target.marker_type not in ('sphere', 'aruco'):
+    detectors = latency_detectors(settings, list(outcome.calibration.cameras), front.chain)
+    if recording is None or detectors is None:
         return None
     T = engine.T_link_target
     offset = settings.robot.marker_offset if T is None else np.asarray(T)[:3, 3]
-    # A ball blurred by motion is not the shaded-ball model, but its intensity centroid is
-    # where it was at mid-exposure; a tag is timed by its centre.
-    point_only = replace(settings, detector=replace(settings.detector, sphere_centre='centroid'),
-                         target=replace(settings.target, aruco_size=0.0))
-    detectors = build_detectors(point_only, list(outcome.calibration.cameras))
     return measure_latencies(recording, detectors, front.chain, offset, outcome.calibration)
 
 
@@ -413,7 +402,7 @@ def _latencies_to_apply(estimates, settings):
     given = dict(settings.front_end.image_stamp_latency)
     new = {}
     for cam, e in estimates.items():
-        if e.ok and abs(e.latency_s - given.get(cam, 0.0)) > max(LATENCY_APPLY_S, 3 * e.std_s):
+        if latency_differs(e, given.get(cam, 0.0)):
             new[cam] = e.latency_s
     return dict(given, **new) if new else {}
 
@@ -446,8 +435,9 @@ def calibrate_bag(source, settings: Settings, output_dir,
     its results fails at once), and the run's files replace the previous run's as a set
     (:mod:`armcal_ros.io.output_dir`).  With ``latency`` (a bag, a point marker) each camera's
     stamp latency is measured in a second pass over the bag and reported; where it differs
-    from the one given (``image_stamp_latency``) by more than :data:`LATENCY_APPLY_S` and its
-    noise, the frames are paired again at stamp - latency and the samples solved again.
+    from the one given (``image_stamp_latency``) by more than its noise and 2 ms
+    (:func:`~armcal_ros.stamp_latency.latency_differs`), the frames are paired again at
+    stamp - latency and the samples solved again.
     """
     with _output_directory(output_dir) as out:
         front = collect_samples(source, settings, progress, log)

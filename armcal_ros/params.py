@@ -177,7 +177,8 @@ PARAMS = [
           'per camera (same order as camera_names; one entry: every camera), how late (s) its '
           'driver stamps images: subtracted from each image\'s stamp before it is paired with '
           'the joint angles (USB, GigE drivers that stamp on arrival: 0.01-0.1 s; armcal '
-          'calibrate measures it, report.json stamp_latency); empty: stamps are exposure times'),
+          'calibrate measures it, report.json stamp_latency, and so does the node, '
+          '/diagnostics stamp_latency_ms); empty: stamps are exposure times'),
     Param('dwell_radius', 'double', 0.001,
           'still frames within this distance (m) of a dwell\'s first are pooled into one sample',
           _positive, minimum=0.0),

@@ -112,7 +112,7 @@ def kept_false(front, gt_dir, result):
 
 
 def run(bag, settings, out):
-    """The pipeline, detection and survival figures of one bag and one set of settings."""
+    """Return the pipeline, detection and survival figures of one bag and its settings."""
     topics = bag_topics(bag)
     gt = os.path.join(bag, 'ground_truth')
     truth_frames = np.load(os.path.join(gt, 'markers.npz'))

@@ -7,7 +7,10 @@ names, joints published shuffled with an extra gripper joint) watched by cameras
 parameter file the simulator wrote for the cell (nothing else but the output directory, the
 solve period and the noise model), must subscribe to the compressed topics, pair the shuffled
 joints by name, and publish CameraInfo and poses for exactly those two cameras close to the
-truth (focal within 3 %, camera centre within 40 mm: test_offline.py's tolerances).
+truth (focal within 3 %, camera centre within 40 mm: test_offline.py's tolerances).  The
+``right`` camera's driver stamps its images 50 ms late: the node times each camera from the
+frames in motion and reports it on /diagnostics, within 5 ms of the simulator's truth (the
+target of ``armcal calibrate``'s measurement, which the node shares).
 Helpers, QoS and the process hygiene: helpers/ros_nodes.py and conftest.py.
 """
 
@@ -39,7 +42,7 @@ def ur5_bag(tmp_path_factory):
     from armcal_ros.cli import main
     bag = tmp_path_factory.mktemp('ur5') / 'bag'
     assert main(['simulate', '--cell', CELL, '--output', str(bag), '--duration', str(DURATION),
-                 '--seed', '2', '--no-zstd', '--quiet']) == 0
+                 '--seed', '2', '--no-zstd', '--quiet', '--stamp-latency', 'right:0.05']) == 0
     return bag
 
 
@@ -63,14 +66,22 @@ def test_node_calibrates_a_ur5_with_two_compressed_colour_cameras(ros_env, clien
         for c in CAMS:
             wait_until(lambda: pose[c] and pose[c][-1][0] >= t_cal, 20, f'pose of {c}')
         final = diag_values(diag, 'armcal: calibration')
+        latency = {}
         for c in CAMS:
             v = wait_until(lambda: diag_values(diag, f'armcal: {c}', t_cal), 20,
                            f'diagnostics of {c}')
             assert v['image_size'] == '640x480', v          # decoded from JPEG
+            latency[c] = wait_until(lambda: (diag_values(diag, f'armcal: {c}') or {}).get(
+                'stamp_latency_ms'), 30, f'stamp latency of {c}')
     finally:
         for p_ in procs:
             p_.kill()
     assert int(final['samples']) >= 12, final
+    marks = np.load(ur5_bag / 'ground_truth' / 'markers.npz')
+    for j, c in enumerate(str(n) for n in marks['camera_names']):
+        m = marks['frame_camera'] == j
+        expected_ms = np.median(marks['frame_stamp_ns'][m] - marks['frame_exposure_ns'][m]) / 1e6
+        assert abs(float(latency[c]) - expected_ms) < 5.0, (c, latency[c], expected_ms)
     assert all(int(final[f'samples_{c}']) > 0 for c in CAMS), final
     truth = {c.name: c for c in read_cameras(str(ur5_bag / 'ground_truth'))[1]}
     assert sorted(truth) == sorted(CAMS)

@@ -121,10 +121,13 @@ def estimate_latency(stamps_s, uv, predict, bounds=(-0.1, 0.25), grid_s=0.002,
         return LatencyEstimate(nan, nan, int(t.size), nan, 'too_few_frames',
                                f'{t.size} frames in motion (at least {min_frames} needed)')
 
+    h = 1e-3                    # the step of the image velocity's finite difference (s)
+
     def residuals(d):
         """Return (residuals of the frames kept, their mask); (None, None) without a fit."""
         r = uv - predict(t - d)
-        good = np.all(np.isfinite(r), axis=1)
+        # A frame at an end of the joint record has a prediction but no velocity: left out.
+        good = np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(predict(t - d - h)), axis=1)
         if good.sum() < min_frames:
             return None, None
         r = r[good] - np.median(r[good], axis=0)
@@ -150,7 +153,6 @@ def estimate_latency(stamps_s, uv, predict, bounds=(-0.1, 0.25), grid_s=0.002,
                                f'{min_frames} frames within {outlier_px} px of the prediction')
     k = int(np.argmin(costs))
     d = float(grid[k])
-    h = 1e-3
     for _ in range(iterations):
         r, mask = residuals(d)
         if r is None:

@@ -78,6 +78,7 @@ from armcal_ros.ros.raw_message import header_fields, LazyMessage
 from armcal_ros.ros.status import diagnostic_statuses, NodeState
 from armcal_ros.settings import (settings_from_values, with_given_intrinsics,
                                  with_solver_intrinsics)
+from armcal_ros.stamp_latency import latency_differs, latency_report
 
 #: Parameters that may change while the node runs (they apply from the next solve).
 RUNTIME_PARAMETERS = frozenset([
@@ -119,6 +120,10 @@ IDLE_CAMERA_INFO_S = 1.0
 #: Shutdown: what is still queued is worked through for at most this long, then the open dwell
 #: is closed and everything saved, so that the node is gone within 2 s of SIGINT or SIGTERM.
 SHUTDOWN_DRAIN_S = 0.7
+#: Seconds between estimates of each camera's stamp latency from the frames in motion, the
+#: first as soon as there is a calibration (the worker thread; an estimate costs a few tenths
+#: of a second per camera, and a latency is a property of the driver: it does not drift).
+LATENCY_PERIOD_S = 10.0
 
 
 def _no_events(kind):
@@ -193,6 +198,12 @@ class CalibratorNode(Node):
         except ValueError as exc:
             raise ParameterError(str(exc)) from exc
         self.chain, self.collector, self.engine = pipe.chain, pipe.collector, pipe.engine
+        # Each camera's stamp latency, timed from the frames in motion (worker thread only).
+        self.latency = pipe.latency
+        self._latency_cal = None
+        self._latency_due = 0.0
+        self._latency_report = {}
+        self._latency_said = {}
         self.engine.on_result(self._on_solve)
         self.engine.on_change(self._on_change)
         self.queue = EventQueue(QUEUE_BOUNDS)
@@ -500,8 +511,12 @@ class CalibratorNode(Node):
                 if kind == 'joint' and self.collector.pose_input:
                     samples = self._guard(self._add_pose, item)
                 elif kind == 'joint':
+                    stamp = stamp_ns(item.header.stamp)
                     samples = self._guard(self.collector.add_joint_state,
-                                          stamp_ns(item.header.stamp), item.name, item.position)
+                                          stamp, item.name, item.position)
+                    if self.latency is not None:
+                        self._guard(self.latency.add_joint_state, stamp, item.name,
+                                    item.position)
                 else:
                     samples = self._guard(self._add_image, *item)
                 self._store(samples)
@@ -510,6 +525,7 @@ class CalibratorNode(Node):
                 if cam not in self._info_pending and self.engine.image_sizes.get(cam) != (w, h):
                     self.engine.set_image_size(cam, w, h)
             self._snapshot()
+            self._guard(self._time_stamps)
             if len(batch) < BATCH_SIZE:
                 time.sleep(WORKER_BATCH_PERIOD_S)
 
@@ -524,7 +540,44 @@ class CalibratorNode(Node):
             self.collector.log('image_malformed', f'{camera}: malformed image message '
                                f'(skipped): {exc}')
             return []
+        if self.latency is not None:
+            self._guard(self.latency.add_image, camera, stamp, msg)
         return self.collector.add_image(camera, stamp, msg)
+
+    def _time_stamps(self):
+        """
+        Keep the stamp-latency timer on the current calibration; estimate now and then (worker).
+
+        A latency that differs from the one given (``image_stamp_latency``) as much as the
+        offline job would pair again with (stamp_latency.latency_differs) is said in the log,
+        once per camera until it agrees again.
+        """
+        if self.latency is None:
+            return
+        cal = self.engine.current
+        if cal is None:
+            return
+        if cal is not self._latency_cal:
+            self._latency_cal = cal
+            self.latency.set_cameras({n: c.camera for n, c in cal.cameras.items()})
+        now = time.monotonic()
+        if now < self._latency_due:
+            return
+        self._latency_due = now + LATENCY_PERIOD_S
+        T = self.engine.T_link_target
+        estimates = self.latency.estimate(cal, None if T is None else np.asarray(T)[:3, 3])
+        given = dict(self.settings.front_end.image_stamp_latency)
+        self._latency_report = latency_report(estimates, given)
+        for cam, e in estimates.items():
+            off = latency_differs(e, given.get(cam, 0.0))
+            if off and not self._latency_said.get(cam):
+                self.get_logger().warning(
+                    f'{cam}: its images are stamped {1e3 * e.latency_s:.1f} +- '
+                    f'{1e3 * e.std_s:.1f} ms after their exposure (timed from {e.frames} '
+                    f'frames in motion); image_stamp_latency gives '
+                    f'{1e3 * given.get(cam, 0.0):.1f} ms: set it to pair the frames at their '
+                    f'exposure')
+            self._latency_said[cam] = off
 
     def _guard(self, fn, *args):
         """Run ``fn``; a failure costs the input (counted and logged), never the worker."""
@@ -864,7 +917,8 @@ class CalibratorNode(Node):
             n_published=self._n_published, frame_ids=dict(e.frame_ids),
             missing_joints=tuple(sorted(self.collector.missing_joints)),
             seen_joint_names=self.collector.seen_joint_names,
-            light_pooling={k: f'{p.status}: {p.message}' for k, p in e.light_pooling.items()})
+            light_pooling={k: f'{p.status}: {p.message}' for k, p in e.light_pooling.items()},
+            stamp_latency=dict(self._latency_report))
 
     def _publish_diagnostics(self):
         stamp = self.get_clock().now().to_msg()

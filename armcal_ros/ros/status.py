@@ -78,6 +78,9 @@ class NodeState:
     seen_joint_names: tuple = ()
     #: Camera -> how the light's shift was pooled at the last solve (``shaded_pooled``).
     light_pooling: Dict[str, str] = field(default_factory=dict)
+    #: Camera -> its stamp latency timed from the frames in motion
+    #: (stamp_latency.latency_report: latency_ms, std_ms, frames, status, message, applied_ms).
+    stamp_latency: Dict[str, dict] = field(default_factory=dict)
 
 
 def diagnostic_statuses(s: NodeState, node_name='armcal') -> List[Status]:
@@ -164,6 +167,13 @@ def camera_status(name, s: NodeState, node_name='armcal') -> Status:
     values['frame_id'] = s.frame_ids.get(name) or f'{name}_optical_frame'
     if name in s.light_pooling:
         values['light_pooling'] = s.light_pooling[name]
+    lat = s.stamp_latency.get(name)
+    if lat:
+        values['stamp_latency'] = lat['message'] if lat['status'] != 'ok' else (
+            f'{lat["latency_ms"]:.1f} +- {lat["std_ms"]:.2f} ms from {lat["frames"]} frames in '
+            f'motion (image_stamp_latency {lat.get("applied_ms") or 0.0:.1f} ms)')
+        if lat['status'] == 'ok':
+            values['stamp_latency_ms'] = lat['latency_ms']
     c = s.calibration.cameras.get(name) if s.calibration is not None else None
     mine = [r for r in s.changes if r.camera == name and r.kind == 'camera']
     if mine:
