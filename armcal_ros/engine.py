@@ -730,6 +730,7 @@ class CalibrationEngine:
         monitor = self.changes.build_monitor(cal, arrays, arm, blocks, joint)
         with self._lock:
             self.changes.apply_sizes(sized)
+            self.changes.light_shifts = dict(self.light_pooling)
             old = self.changes.monitor
             # A solve that ran while a camera was drifting off its prediction has absorbed
             # part of the change: keep testing against the calibration that saw it coming.

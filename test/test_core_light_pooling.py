@@ -38,6 +38,21 @@ def test_a_smooth_shift_is_recovered_below_the_noise_of_each_view():
     assert abs(pooled.loo_rms - noise) < 0.3 * noise
 
 
+def test_the_smooth_predicts_the_shift_at_new_places_as_at_its_own_views():
+    points, rng = _views(300, 1)
+    pooled = pool_light_shift(points, _lamp_shift(points) + rng.normal(0, 0.02, (300, 2)))
+    # At its own views the same smooth: what each view was solved with.
+    assert np.allclose(pooled.at(points), pooled.shift, atol=1e-9)
+    new, _ = _views(100, 7)
+    err = pooled.at(new) - _lamp_shift(new)
+    assert np.sqrt(np.mean(err ** 2)) < 0.01, np.sqrt(np.mean(err ** 2))
+    flat = pool_light_shift(points, rng.normal(0, 0.02, (300, 2)))      # one plane or constant
+    assert flat.degree is not None and np.allclose(flat.at(points), flat.shift, atol=1e-9)
+    few = pool_light_shift(points[:5], np.zeros((5, 2)))
+    with pytest.raises(ValueError, match='pooled'):
+        few.at(new)
+
+
 def test_no_shift_under_even_light_gives_the_smoothest_fit():
     points, rng = _views(200, 2)
     d = rng.normal(0, 0.02, (200, 2))

@@ -151,3 +151,20 @@ def test_a_withheld_camera_leaves_no_calibration_file_a_driver_would_load(knocke
     assert (tmp_path / 'cam2.before_change.yaml').exists()
     from armcal_ros.io.calib_files import read_cameras
     assert [c.name for c in read_cameras(str(tmp_path))[1]] == ['cam1', 'cam3']
+
+
+def test_a_lit_balls_new_view_is_tested_as_the_solve_took_its_views():
+    """With shaded_pooled a new view is its centroid plus the pooled shift, not its fit."""
+    from armcal_ros.change_tracking import ChangeTracker
+    from armcal_ros.core.light_pooling import pool_light_shift
+    rng = np.random.default_rng(3)
+    points = rng.uniform([-0.3, -0.3, 0.2], [0.3, 0.3, 0.7], (60, 3))
+    tracker = ChangeTracker()
+    tracker.light_shifts = {'cam1': pool_light_shift(points, np.tile([0.4, -0.5], (60, 1)))}
+    fitted = Observation(uv=[[100.3, 200.2]], ids=[0], centroid_uv=[[100.0, 200.0]])
+    got = tracker._as_solved('cam1', fitted, points[0])
+    assert np.allclose(got, [100.4, 199.5], atol=1e-6)
+    # No pooled shift for the camera, or a plain centroid: the view's own centre.
+    assert np.allclose(tracker._as_solved('cam2', fitted, points[0]), [100.3, 200.2])
+    plain = Observation(uv=[[50.0, 60.0]], ids=[0])
+    assert np.allclose(tracker._as_solved('cam1', plain, points[0]), [50.0, 60.0])

@@ -33,6 +33,7 @@ noise (:data:`MAX_NOISE_RATIO`), and the fitted centres are kept.
 """
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -68,28 +69,52 @@ class PooledShift:
     loo_rms: float
     status: str
     message: str
+    #: What :meth:`at` needs: the views' points and shifts and the smooth's global degree
+    #: (None: local planes through ``k`` views).
+    points: Optional[np.ndarray] = None
+    shifts: Optional[np.ndarray] = None
+    degree: Optional[int] = None
+
+    def at(self, points) -> np.ndarray:
+        """
+        Return the smooth's shift (N, 2) at new places ``points`` (N, 3), the same smooth.
+
+        What a new view's centroid is moved by, so that it is compared with the calibration
+        as the solve's views were.  Only for a pooled shift (``status`` 'ok').
+        """
+        if self.status != 'ok' or self.points is None:
+            raise ValueError(f'a shift is predicted only from a pooled one, status '
+                             f'{self.status!r}')
+        q = np.asarray(points, float).reshape(-1, 3)
+        if self.degree is not None:
+            return _global_fit(self.points, self.shifts, self.degree, False, query=q)
+        return _local_linear(self.points, self.shifts, cKDTree(self.points), self.k, False,
+                             query=q)[0]
 
 
-def _local_linear(points, values, tree, k, leave_out, global_degree=None, at=None):
+def _local_linear(points, values, tree, k, leave_out, global_degree=None, at=None,
+                  query=None):
     """
     Return (fit (M, 2), kernel_sq (M,)): each view's smooth and its squared weights' sum.
 
     The local-linear smooth over the k nearest views with tricube weights; with
     ``global_degree`` 1 or 0 instead a plane or a constant through all views, equally
     weighted (:func:`_global_fit`).  ``leave_out`` fits each view without itself (the
-    cross-validation); ``at`` (indices) fits those views only (default all).
+    cross-validation); ``at`` (indices) fits those views only (default all); ``query``
+    (M, 3) fits at those places instead (new views: local planes only, no leave-out).
     """
     at = np.arange(len(points)) if at is None else at
     if global_degree is not None:
         fit, kernel_sq = _global_fit(points, values, global_degree, leave_out)
         return fit[at], kernel_sq[at]
-    m = len(at)
-    dist, idx = tree.query(points[at], k=k + 1)
-    if leave_out:
+    centre = points[at] if query is None else np.asarray(query, float)
+    m = len(centre)
+    dist, idx = tree.query(centre, k=k + 1)
+    if query is None and leave_out:
         dist, idx = dist[:, 1:], idx[:, 1:]
     h = np.maximum(dist[:, -1:] * 1.0001, 1e-12)
     w = (1.0 - (dist / h) ** 3) ** 3
-    dx = points[idx] - points[at][:, None, :]                     # (M, k, 3)
+    dx = points[idx] - centre[:, None, :]                         # (M, k, 3)
     A = np.concatenate([np.ones(idx.shape + (1,)), dx / h[:, :, None]], axis=2)
     Aw = A * w[:, :, None]
     N = np.einsum('mka,mkb->mab', Aw, A)
@@ -105,20 +130,25 @@ def _local_linear(points, values, tree, k, leave_out, global_degree=None, at=Non
     return fit, np.sum(kernel ** 2, axis=1)
 
 
-def _global_fit(points, values, degree, leave_out):
+def _global_fit(points, values, degree, leave_out, query=None):
     """
     Return (fit, kernel_sq) of one plane (``degree`` 1) or one constant (0) through all views.
 
     By the hat matrix H = A (A^T A)^-1 A^T, whose diagonal h gives the fit's squared weights
     (H is idempotent) and the leave-one-out prediction without refitting:
-    y_(-i) = (Hy_i - h_i y_i) / (1 - h_i), with squared weights h_i / (1 - h_i).
+    y_(-i) = (Hy_i - h_i y_i) / (1 - h_i), with squared weights h_i / (1 - h_i).  With
+    ``query`` (N, 3): the fit (N, 2) at those places alone.
     """
-    m = len(points)
-    if degree == 1:
-        span = max(float(np.ptp(points, axis=0).max()), 1e-12)
-        A = np.column_stack([np.ones(m), (points - points.mean(axis=0)) / span])
-    else:
-        A = np.ones((m, 1))
+    span = max(float(np.ptp(points, axis=0).max()), 1e-12)
+
+    def design(x):
+        x = np.asarray(x, float)
+        if degree == 1:
+            return np.column_stack([np.ones(len(x)), (x - points.mean(axis=0)) / span])
+        return np.ones((len(x), 1))
+    A = design(points)
+    if query is not None:
+        return design(query) @ np.linalg.lstsq(A, values, rcond=None)[0]
     Q, _ = np.linalg.qr(A)
     fit = Q @ (Q.T @ values)
     h = np.minimum(np.sum(Q * Q, axis=1), 1.0 - 1e-9)
@@ -182,4 +212,5 @@ def pool_light_shift(points, shifts, noise_var=None) -> PooledShift:
     how = {None: f'local planes through {k} neighbouring views', 1: 'one plane',
            0: 'one constant'}[degree]
     return PooledShift(fit, kernel_sq * noise_var, k if degree is None else m,
-                       float(np.sqrt(err)), 'ok', f'{how} over {m} views')
+                       float(np.sqrt(err)), 'ok', f'{how} over {m} views', points.copy(),
+                       shifts.copy(), degree)
