@@ -138,6 +138,23 @@ def latency_detectors(settings: Settings, camera_names, chain):
     return build_detectors(point_only, list(camera_names))
 
 
+#: Shaded-ball fits per camera and dwell when the light shift is pooled (``shaded_pooled``).
+#: The solve takes each view's centroid (all its frames) plus the camera's light shift pooled
+#: over all its views, so a view's own shift only enters that pool, where its noise is
+#: averaged with hundreds of others; three fits give the scatter and a median to drop a bad
+#: one (two are the least the pooling takes).  Fitting every frame cost the live node three
+#: times its CPU (docs/BENCHMARKS.md *node*).
+FITS_PER_VIEW_POOLED = 3
+
+
+def fits_per_view(settings: Settings) -> int:
+    """Return the front end's cap on centre fits per camera and dwell (0: fit every frame)."""
+    if settings.target.marker_type == 'sphere' and \
+            settings.detector.sphere_centre == 'shaded_pooled':
+        return FITS_PER_VIEW_POOLED
+    return 0
+
+
 def min_frames_per_dwell(settings: Settings) -> int:
     """
     Return the frames a camera needs in a dwell for an observation of the marker.
@@ -242,7 +259,8 @@ def build_pipeline(settings: Settings, log: Optional[Callable[[str], None]] = No
                                 min_frames=min_frames_per_dwell(settings),
                                 cameras_on_link=settings.target.eye_in_hand,
                                 still_guard_s=fe.still_guard,
-                                stamp_latency_s=dict(fe.image_stamp_latency))
+                                stamp_latency_s=dict(fe.image_stamp_latency),
+                                max_fits_per_view=fits_per_view(settings))
     timing = latency_detectors(settings, names, chain)
     latency = None if timing is None else LatencyTimer(
         timing, chain, settings.robot.marker_offset, min_marker_speed=fe.max_marker_speed)

@@ -104,3 +104,13 @@ def test_a_fitted_centre_is_not_lamp_corrected_and_pooling_is_switched_by_the_ce
     from armcal_ros.compose import build_detectors
     det = build_detectors(_settings(sphere_centre='shaded_pooled'), ['cam1', 'cam2'])
     assert [d.centre for d in det.values()] == ['shaded', 'shaded']
+
+
+def test_only_a_pooled_shaded_ball_is_fitted_in_a_few_frames_per_dwell():
+    from armcal_ros.compose import FITS_PER_VIEW_POOLED
+    fits = {c: build_pipeline(_settings(sphere_centre=c)).collector.pooler.max_fits
+            for c in ('shaded_pooled', 'shaded', 'centroid')}
+    # Unpooled, a view's own fit is its centre: every frame's fit counts.
+    assert fits == {'shaded_pooled': FITS_PER_VIEW_POOLED, 'shaded': 0, 'centroid': 0}
+    assert build_pipeline(_settings(estimate_marker_offset=True, **BOARD)
+                          ).collector.pooler.max_fits == 0

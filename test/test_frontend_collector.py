@@ -150,6 +150,36 @@ def test_sphere_is_not_capped_by_default_or_when_set():
         assert all(s.observations['c1'].n_frames > 3 for s in samples)
 
 
+class LitBallDetector:
+    """A shaded-ball stand-in: a centre 0.4 px from its centroid, fitted only when asked."""
+
+    def __init__(self):
+        self.fits = self.calls = 0
+
+    def detect(self, image, fit=True):
+        self.calls += 1
+        self.fits += fit
+        centroid = np.array([320.4, 240.0])
+        uv = np.array([320.0, 240.0]) if fit else np.full(2, np.nan)
+        return [Detection(uv=uv, id=0, quality=1.0, radius_px=6.0, centroid=centroid)]
+
+
+def test_a_shaded_ball_is_fitted_in_only_a_few_frames_per_dwell():
+    dets = {c: LitBallDetector() for c in ('c1', 'c2')}
+    col = SampleCollector(None, [0, 0, 0], ['c1', 'c2'], dets, max_fits_per_view=3)
+    col.static_spots = None
+    samples = _feed(col, ['c1', 'c2'])
+    assert len(samples) == 2
+    assert [d.fits for d in dets.values()] == [6, 6]          # 3 per dwell and camera
+    assert sum(d.calls for d in dets.values()) == col.counts['frames_still']
+    assert col.counts['frames_fit_skipped'] == col.counts['frames_still'] - 12
+    for s in samples:
+        o = s.observations['c1']
+        assert o.n_frames > 3
+        np.testing.assert_allclose(o.uv, [[320.0, 240.0]], atol=1e-9)
+        np.testing.assert_allclose(o.centroid_uv, [[320.4, 240.0]], atol=1e-9)
+
+
 def test_parameter_default_matches_the_collector_and_is_checked():
     p = BY_NAME['max_views_per_dwell']
     default = inspect.signature(SampleCollector).parameters['max_views_per_dwell'].default

@@ -138,16 +138,24 @@ def test_the_detector_uses_the_fit_on_a_lit_frame():
     sensor = replace(st.sensor, lamp=tuple(lamp), ambient=0.25)
     f = sim.frames
     detectors = {c: make_detector('sphere', centre=c) for c in ('centroid', 'shaded')}
+    sparing = make_detector('sphere', centre='shaded')     # fits one frame in four
     cam0 = np.flatnonzero((f.camera == 0) & (f.occlusion == OCCLUSION_NONE))[:60]
     errs = {c: [] for c in detectors}
     centroids = {c: [] for c in detectors}
-    for i in cam0:
+    for k, i in enumerate(cam0):
         image = sim.render(i, 'mono8', sensor=sensor)
         for c, det in detectors.items():
             got = det.detect(image)
             assert got, (c, det.last_status)
             errs[c].append(got[0].uv - f.uv[i])
             centroids[c].append(got[0].centroid)
+        [spared] = sparing.detect(image, fit=k % 4 == 0)
+        if k % 4:
+            # Without its fit, the same centroid beside a NaN centre.
+            assert np.all(np.isnan(spared.uv))
+            np.testing.assert_allclose(spared.centroid, centroids['shaded'][-1], atol=1e-12)
+        else:
+            np.testing.assert_allclose(spared.uv, errs['shaded'][-1] + f.uv[i], atol=0.05)
     shift = {c: np.linalg.norm(np.mean(e, axis=0)) for c, e in errs.items()}
     assert shift['centroid'] > 0.2 and shift['shaded'] < 0.05, shift
     # The fit keeps the blob's centroid beside its centre (for pooling the light's shift).

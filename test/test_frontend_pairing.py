@@ -467,3 +467,74 @@ def test_fitted_centres_carry_their_centroids_through_the_dwell():
     np.testing.assert_allclose(o1.centroid_uv, [[100.4, 50.05]])
     assert o1.centroid_spread_px == pytest.approx(np.std(0.02 * np.arange(6)))
     assert o2.centroid_uv is None and o2.centroid_spread_px == 0.0
+
+
+def _lit_dwell(pooler, rng, n=20, shift=(-0.4, 0.1), sigma_c=0.02, sigma_f=0.08,
+               bad_fit=None):
+    """Feed one camera's dwell of a still lit ball, fitting only where the pooler asks."""
+    centre = np.array([200.0, 120.0])
+    fitted_frames = 0
+    for k in range(n):
+        f = _frame('a', 10 * k)
+        c = centre - np.asarray(shift) + rng.normal(0, sigma_c, 2)
+        if pooler.needs_fit(f):
+            uv = centre + rng.normal(0, sigma_f, 2)
+            if bad_fit is not None and fitted_frames == bad_fit:
+                uv = uv + 3.0
+            fitted_frames += 1
+        else:
+            uv = np.full(2, np.nan)
+        pooler.add(f, [Detection(uv=uv, id=0, quality=1.0, radius_px=6.0, centroid=c)])
+    return fitted_frames
+
+
+def test_fit_cap_pools_all_centroids_and_the_fitted_frames_shift():
+    rng = np.random.default_rng(3)
+    pooler = DwellPooler(_identity_fk, min_frames=2, max_fits=3)
+    assert _lit_dwell(pooler, rng) == 3
+    assert not pooler.needs_fit(_frame('a', 300)) and pooler.needs_fit(_frame('b', 300))
+    [s] = pooler.flush()
+    o = s.observations['a']
+    assert o.n_frames == 20
+    # The centroid's light bias (0.41 px) is gone: the centre within the noise of 3 fits.
+    np.testing.assert_allclose(o.uv[0], [200.0, 120.0], atol=0.15)
+    np.testing.assert_allclose(o.centroid_uv[0], [200.4, 119.9], atol=0.03)
+    assert 0.005 < o.centroid_spread_px < 0.05
+
+
+def test_fit_cap_stated_spread_bounds_the_pooled_centres_scatter():
+    rng = np.random.default_rng(4)
+    errors, stated = [], []
+    for _ in range(400):
+        pooler = DwellPooler(_identity_fk, min_frames=2, max_fits=4)
+        _lit_dwell(pooler, rng, n=24)
+        [s] = pooler.flush()
+        o = s.observations['a']
+        errors.append(o.uv[0] - [200.0, 120.0])
+        stated.append(o.spread_px ** 2 / (2.0 * (o.n_frames - 1)))   # per-axis variance
+    true_var = np.mean(np.square(errors))            # per axis, both axes pooled
+    # Truth: s_c^2 (1/K - 1/n) + s_f^2 / K; stated on average s_c^2 / n + (s_f^2 + s_c^2) / K,
+    # an upper bound that the fit's noise dominates here (2 % above the truth).
+    expected = 0.02 ** 2 * (1 / 4 - 1 / 24) + 0.08 ** 2 / 4
+    assert true_var == pytest.approx(expected, rel=0.15)
+    assert np.mean(stated) == pytest.approx(true_var, rel=0.15)
+
+
+def test_fit_cap_drops_a_bad_fit_and_needs_min_frames_fits():
+    rng = np.random.default_rng(5)
+    pooler = DwellPooler(_identity_fk, min_frames=2, max_fits=3)
+    _lit_dwell(pooler, rng, bad_fit=1)
+    [s] = pooler.flush()
+    np.testing.assert_allclose(s.observations['a'].uv[0], [200.0, 120.0], atol=0.2)
+    # One fitted frame and many centroids: a centroid alone would carry the light's bias.
+    pooler = DwellPooler(_identity_fk, min_frames=2, max_fits=2)
+    c = np.array([200.4, 119.9])
+    pooler.add(_frame('a', 0), [Detection(uv=np.array([200.0, 120.0]), id=0, quality=1.0,
+                                          radius_px=6.0, centroid=c)])
+    for k in range(1, 8):
+        pooler.add(_frame('a', 10 * k), [Detection(uv=np.full(2, np.nan), id=0, quality=1.0,
+                                                   radius_px=6.0, centroid=c)])
+    assert pooler.flush() == []
+    for bad in (-1, 1, True, 2.0):
+        with pytest.raises(ValueError, match='max_fits'):
+            DwellPooler(_identity_fk, min_frames=2, max_fits=bad)

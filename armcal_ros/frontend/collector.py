@@ -85,7 +85,11 @@ class SampleCollector:
     still frame for it (tens of ms each) would fall behind three live cameras.  Later still
     frames of that camera in the same dwell are counted in ``frames_skipped_dwell_full`` and
     not decoded.  A sphere or a tag is not capped: detecting one costs about a millisecond,
-    and its pooling wants several frames.
+    and its pooling wants several frames.  ``max_fits_per_view`` (0: no cap) caps only a
+    costly centre fit (a shaded ball, one to two milliseconds more): a camera's further still
+    frames in the dwell are detected without it (their centroids pooled, the fitted frames'
+    light shift added; :class:`~armcal_ros.frontend.pairing.DwellPooler` ``max_fits``) and
+    counted in ``frames_fit_skipped``.
 
     ``cameras_on_link`` (eye-in-hand): the cameras move with the link and the target stands
     still; stillness and "the same place" then follow the link's pose as seen from about a
@@ -110,7 +114,8 @@ class SampleCollector:
                  max_marker_speed=0.0375, dwell_radius=0.001, log=None,
                  board: Optional[BoardTarget] = None, max_pose_gap_s=0.1, min_frames=None,
                  cameras_on_link=False,
-                 max_views_per_dwell=3, still_guard_s=0.0, stamp_latency_s=None):
+                 max_views_per_dwell=3, still_guard_s=0.0, stamp_latency_s=None,
+                 max_fits_per_view=0):
         self.chain = chain
         self.pose_input = chain is None
         self.board = board
@@ -165,7 +170,8 @@ class SampleCollector:
                              f'{max_views_per_dwell!r}')
         self.pooler = DwellPooler(fk, dwell_radius=dwell_radius,
                                   min_frames=min_frames, mean_config=mean,
-                                  max_views=max_views_per_dwell if board is not None else 0)
+                                  max_views=max_views_per_dwell if board is not None else 0,
+                                  max_fits=max_fits_per_view)
         # A point target carried by the arm moves in the images when the arm moves; eye-in-
         # hand cameras and boards follow other rules.
         self.static_spots = (StaticSpotFilter() if board is None and not cameras_on_link
@@ -261,7 +267,10 @@ class SampleCollector:
             if frame.status is PairStatus.STILL:
                 self.counts['frames_still'] += 1
                 if self.pooler.needs_detection(frame):
-                    dets = self._detect(frame.camera, frame.payload)
+                    fit = self.pooler.needs_fit(frame)
+                    if not fit:
+                        self.counts['frames_fit_skipped'] += 1
+                    dets = self._detect(frame.camera, frame.payload, fit)
                 else:
                     self.counts['frames_skipped_dwell_full'] += 1
             else:
@@ -289,7 +298,7 @@ class SampleCollector:
             self.counts['samples_static'] = self.static_spots.counts['samples_static']
         return samples
 
-    def _detect(self, camera, msg):
+    def _detect(self, camera, msg, fit=True):
         nbytes = len(getattr(msg, 'data', b''))
         typical = self._typical_bytes.get(camera)
         if is_oversize(nbytes, typical):
@@ -316,7 +325,8 @@ class SampleCollector:
         self.image_sizes[camera] = (w, h)
         if typical is None:
             self._typical_bytes[camera] = max(nbytes, 1)
-        dets = self.detectors[camera].detect(image)
+        dets = (self.detectors[camera].detect(image) if fit
+                else self.detectors[camera].detect(image, fit=False))
         if self.board is not None and len(self.board.points) == 1:
             # A point marker as a one-point target: whatever its id, a detection is point 0.
             dets = [replace(d, id=0) for d in dets]

@@ -488,7 +488,9 @@ class _Dwell:
         self.last_stamp = max(self.last_stamp, frame.stamp_ns)
         self.first_stamp = min(self.first_stamp, frame.stamp_ns)
         if detections:
-            uvs = {int(d.id): np.asarray(d.uv, dtype=float) for d in detections}
+            # A centroid-only detection (the fit skipped) has a NaN uv: no fitted centre.
+            uvs = {int(d.id): np.asarray(d.uv, dtype=float) for d in detections
+                   if np.all(np.isfinite(d.uv))}
             cents = {int(d.id): np.asarray(d.centroid, dtype=float) for d in detections
                      if d.centroid is not None}
             self.per_camera.setdefault(frame.camera, []).append((frame.stamp_ns, uvs, cents))
@@ -522,11 +524,22 @@ class DwellPooler:
     frames there, and the caller passes them without detections.  They still extend the dwell
     (its stamps, its joint mean and its gap and length limits) as any frame without a
     detection does, so the sample is the one the first ``max_views`` views give; 0 is no cap.
+
+    ``max_fits`` > 0 caps a costly centre fit the same way (a shaded ball): once a camera has
+    ``max_fits`` frames with a fitted centre in the open dwell, :meth:`needs_fit` is False and
+    the caller passes centroid-only detections (a NaN ``uv`` beside the ``centroid``).  Such
+    a view pools its centroids over all its frames (median, outliers dropped, mean) and its
+    light shift (fit - centroid) over the fitted ones (the same, ``min_frames`` of them
+    needed): ``uv = mean centroid + mean shift`` - the ball is still in a dwell, so its light
+    shift is one value.  Its ``spread_px`` is then the spread that ``n_frames`` frames would
+    have for the variance of that sum, ``sqrt(2 (n - 1) (s_c^2 / n + s_s^2 / K))`` with the
+    per-axis variances ``s_c^2`` of the n centroids and ``s_s^2`` of the K shifts (an upper
+    bound: the fit's and the centroid's shared pixel noise would lower ``s_s``).
     """
 
     def __init__(self, fk, dwell_radius=0.001, max_gap_ns=500_000_000,
                  max_dwell_ns=10_000_000_000, min_frames=2, outlier_px=2.0, max_frames=200,
-                 mean_config=None, max_views=0):
+                 mean_config=None, max_views=0, max_fits=0):
         if not callable(fk):
             raise ValueError('fk must be callable: fk(Q (M, n)) -> (M, 3)')
         if mean_config is not None and not callable(mean_config):
@@ -554,6 +567,11 @@ class DwellPooler:
             raise ValueError(f'max_views must be 0 (no cap) or an integer >= min_frames '
                              f'({self.min_frames}), got {max_views!r}')
         self.max_views = int(max_views)
+        if not isinstance(max_fits, (int, np.integer)) or isinstance(max_fits, bool) or not (
+                max_fits == 0 or self.min_frames <= max_fits):
+            raise ValueError(f'max_fits must be 0 (no cap) or an integer >= min_frames '
+                             f'({self.min_frames}), got {max_fits!r}')
+        self.max_fits = int(max_fits)
         self._dwell = None
 
     @property
@@ -591,6 +609,18 @@ class DwellPooler:
             return True
         return len(self._dwell.per_camera.get(frame.camera, ())) < self.max_views
 
+    def needs_fit(self, frame):
+        """
+        Return False when ``frame``'s camera has ``max_fits`` fitted views in the open dwell.
+
+        Only for a still frame that joins the open dwell; always True without a cap.
+        """
+        if not self.max_fits or frame.status is not PairStatus.STILL or \
+                self._dwell is None or not self._joins(frame):
+            return True
+        fitted = sum(1 for _, uvs, _ in self._dwell.per_camera.get(frame.camera, ()) if uvs)
+        return fitted < self.max_fits
+
     def _joins(self, frame):
         """Return True when the still ``frame`` belongs to the open dwell."""
         dwell = self._dwell
@@ -626,6 +656,8 @@ class DwellPooler:
                        reference_points=points if len(points) > 1 else None)]
 
     def _pool_camera(self, frames):
+        if any(set(cents) - set(uvs) for _, uvs, cents in frames):
+            return self._pool_camera_shifts(frames)
         ids = sorted({i for _, uvs, _ in frames for i in uvs})
         uv_out, id_out, sq_sum, n_sq = [], [], 0.0, 0
         cent_out, cent_sq = [], 0.0
@@ -658,3 +690,41 @@ class DwellPooler:
                            centroid_uv=None if cent_out is None else np.array(cent_out),
                            centroid_spread_px=(0.0 if cent_out is None
                                                else math.sqrt(cent_sq / n_sq)))
+
+    def _pool_camera_shifts(self, frames):
+        """Pool a view whose frames are partly centroid-only (class docstring, ``max_fits``)."""
+        ids = sorted({i for _, _, cents in frames for i in cents})
+        uv_out, id_out, cent_out, var_uv, cent_sq, n_all = [], [], [], 0.0, 0.0, 0
+        frames_used = set()
+        for tid in ids:
+            rows = [k for k, (_, _, cents) in enumerate(frames) if tid in cents]
+            cents = np.array([frames[k][2][tid] for k in rows])
+            inlier = np.linalg.norm(cents - np.median(cents, axis=0), axis=1) <= self.outlier_px
+            kept = [k for k, ok in zip(rows, inlier) if ok]
+            fitted = [k for k in kept if tid in frames[k][1]]
+            if len(kept) < self.min_frames or len(fitted) < self.min_frames:
+                continue
+            shifts = np.array([frames[k][1][tid] - frames[k][2][tid] for k in fitted])
+            near = np.linalg.norm(shifts - np.median(shifts, axis=0), axis=1) <= self.outlier_px
+            if np.count_nonzero(near) < self.min_frames:
+                continue
+            shifts, c = shifts[near], cents[inlier]
+            n, m = len(c), len(shifts)
+            c_sq = float(np.sum((c - c.mean(axis=0)) ** 2))
+            s_sq = float(np.sum((shifts - shifts.mean(axis=0)) ** 2))
+            # The per-axis variances of the mean centroid and of the mean shift.
+            var_uv += c_sq / (2.0 * max(n - 1, 1) * n) + s_sq / (2.0 * max(m - 1, 1) * m)
+            cent_sq += c_sq
+            n_all += n
+            frames_used.update(kept)
+            cent_out.append(c.mean(axis=0))
+            uv_out.append(c.mean(axis=0) + shifts.mean(axis=0))
+            id_out.append(tid)
+        if not uv_out:
+            return None
+        n = len(frames_used)
+        stamps = np.array([frames[k][0] for k in sorted(frames_used)], dtype=np.int64)
+        return Observation(uv=np.array(uv_out), ids=np.array(id_out), n_frames=n,
+                           spread_px=math.sqrt(2.0 * max(n - 1, 0) * var_uv / len(uv_out)),
+                           stamp_ns=int(np.median(stamps)), centroid_uv=np.array(cent_out),
+                           centroid_spread_px=math.sqrt(cent_sq / n_all))

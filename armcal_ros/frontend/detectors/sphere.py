@@ -157,6 +157,7 @@ class SphereDetector(Detector):
             raise ValueError(f'centre must be one of {", ".join(self.CENTRES)}, got {centre!r}')
         self.centre = centre
         self._fit_start = None
+        self._fit_now = True
         self._scene_frames = []
         self._scene = None
         self._scene_now = None
@@ -198,7 +199,7 @@ class SphereDetector(Detector):
         every = self.SCENE_EVERY if known else self.SCENE_EVERY_FIRST
         if self._calls < self._last_keep + every:
             return
-        uv = None if det is None else det.uv
+        uv = None if det is None else (det.uv if det.centroid is None else det.centroid)
         moved = uv is None or self._kept_uv is None or \
             np.hypot(*(uv - self._kept_uv)) > max(4.0, 2.0 * det.radius_px)
         if not moved and self._calls < self._last_keep + self.SCENE_FORCE * every:
@@ -209,9 +210,16 @@ class SphereDetector(Detector):
         if len(self._scene_frames) == self.SCENE_FRAMES:
             self._scene = _median_of_five(self._scene_frames)
 
-    def detect(self, image):
-        """Return [] or one :class:`Detection` (id 0) of the sphere in ``image``."""
+    def detect(self, image, fit=True):
+        """
+        Return [] or one :class:`Detection` (id 0) of the sphere in ``image``.
+
+        ``fit=False`` skips the shaded fit (``centre='shaded'``): the detection carries the
+        centroid and a NaN ``uv``, for a caller that has enough fits of this view already
+        (:class:`~armcal_ros.frontend.pairing.DwellPooler` ``max_fits``).
+        """
         gray = to_gray(image)
+        self._fit_now = bool(fit)
         # Subtracted region by region in _detect_region: a tracked search touches ~1 % of the
         # frame (a whole-frame subtraction on every image cost the live node 5 % of a core).
         self._scene_now = self._scene if (self._scene is not None and
@@ -241,7 +249,7 @@ class SphereDetector(Detector):
         return self._accept(det, 'ok')
 
     def _accept(self, det, status):
-        self.last_uv = det.uv.copy()
+        self.last_uv = (det.uv if det.centroid is None else det.centroid).copy()
         self.last_radius = det.radius_px
         self.last_status = status
         return [det]
@@ -300,7 +308,9 @@ class SphereDetector(Detector):
         if best.touches_edge:
             return None, 'window_edge'
         uv = centroid = best.uv + (x0, y0)
-        if self.centre == 'shaded':
+        if self.centre == 'shaded' and not self._fit_now:
+            uv = np.full(2, np.nan)
+        elif self.centre == 'shaded':
             uv = self._shaded_centre(sub, best, x0, y0)
             if uv is None:
                 return None, 'shaded_fit_failed'
