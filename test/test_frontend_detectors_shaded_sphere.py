@@ -192,3 +192,41 @@ def test_the_detector_follows_an_led_from_dwell_to_dwell():
     errors = errors[errors < 3.0]                      # a glint taken for the marker
     assert np.percentile(errors, 99) < 0.2 and np.median(errors) < 0.05, \
         (np.median(errors), np.percentile(errors, 99), errors.max())
+
+
+def test_a_ball_over_a_textured_scene_is_fitted_over_it():
+    """
+    An opaque lit ball hides a textured scene brighter than its unlit side.
+
+    Fitted to the frame minus the scene clipped at zero (a crescent where the ball is lit),
+    its centre is pulled off; fitted over the scene it is where the ball is: errors of 0.1 px
+    on average over many views at most (the noise; measured 0.06), the clipped fit's 0.57.
+    """
+    sim = simulate_cell('geometric', seed=5, duration=20.0)
+    st, f = sim.settings, sim.frames
+    lamp = 0.5 * (np.asarray(st.workspace_min) + np.asarray(st.workspace_max)) + [0, 0, 1.5]
+    sensor = replace(st.sensor, lamp=tuple(lamp), ambient=0.25)
+    rng = np.random.default_rng(2)
+    errors = {'over the scene': [], 'clipped': []}
+    for i in np.flatnonzero(f.occlusion == OCCLUSION_NONE)[:40]:
+        cam = sim.cameras[int(f.camera[i])]
+        X = f.marker[i]
+        u0, v0, signal, alpha = marker_signal(cam, X[None], st.marker_radius, sensor, 0.8,
+                                              margin=4, with_alpha=True)
+        vv, uu = np.mgrid[0:signal.shape[0], 0:signal.shape[1]]
+        # Stripes and a gradient between 20 and 110 DN: brighter than the unlit side in places.
+        scene = 65.0 + 30.0 * np.sin(0.9 * uu + rng.uniform(0, 6)) + 15.0 * (vv / vv.max() - 0.5)
+        frame = _noisy(signal + (1.0 - alpha) * scene, rng)
+        truth = cam.project(X[None])[0]
+        start = truth + rng.normal(0, 0.3, 2)
+        radius0 = max(cam.fx * st.marker_radius / cam.to_camera(X[None])[0, 2], 1.0)
+        fit = fit_shaded_sphere(frame - scene, u0, v0, start, radius0, scene=scene)
+        assert fit.ok, fit
+        errors['over the scene'].append(fit.uv - truth)
+        clipped = fit_shaded_sphere(np.clip(frame - scene, 0, None), u0, v0, start, radius0)
+        if clipped.ok:
+            errors['clipped'].append(clipped.uv - truth)
+    mean = {k: np.mean(np.hypot(*np.array(e).T)) for k, e in errors.items()}
+    assert mean['over the scene'] < 0.1 and mean['clipped'] > 0.3, mean
+    with pytest.raises(ValueError, match='scene'):
+        fit_shaded_sphere(frame - scene, u0, v0, start, radius0, scene=scene[1:])

@@ -254,3 +254,31 @@ def test_an_led_is_brightest_where_the_tool_points_and_turns_with_it(cell):
         SensorModel(led_axis=(0.0, 0.0, 1.0), lamp=(1.0, 1.0, 1.0))
     with pytest.raises(ValueError, match='led_falloff'):
         SensorModel(led_falloff=0.0)
+
+
+def test_an_opaque_ball_hides_the_scene_behind_it(cell):
+    """Over a scene brighter than its unlit side, the ball's unlit side stays dark."""
+    from dataclasses import replace
+    from armcal_ros.sim.render import expose
+    f = cell.frames
+    i = int(np.flatnonzero(f.occlusion == OCCLUSION_NONE)[3])
+    cam = cell.cameras[int(f.camera[i])]
+    X = f.marker[i]
+    lamp = X + 5.0 * cam.rotation[0]                       # lit from the image's right
+    sensor = replace(cell.settings.sensor, lamp=tuple(lamp), ambient=0.25, read_noise=0.0,
+                     gain=1e6)
+    u0, v0, signal, alpha = marker_signal(cam, X[None], cell.settings.marker_radius, sensor,
+                                          0.6, with_alpha=True)
+    assert 0.99 < alpha.max() <= 1.0 + 1e-9 and alpha.min() >= 0.0
+    scene = np.full((cam.height, cam.width), 0.6 * signal.max())
+    rng = np.random.default_rng(0)
+    hidden = expose(cam, [(u0, v0, signal)], rng, sensor, 'mono8', scene,
+                    [(u0, v0, alpha)]).astype(float)
+    brighter = expose(cam, [(u0, v0, signal)], rng, sensor, 'mono8', scene).astype(float)
+    k = np.unravel_index(np.argmax(alpha - signal / signal.max()), alpha.shape)   # unlit, covered
+    at = (v0 + k[0], u0 + k[1])
+    expected = signal[k] + (1.0 - alpha[k]) * scene[at] + sensor.black_level
+    assert hidden[at] == pytest.approx(expected, abs=1.0) and hidden[at] < scene[at] - 5.0
+    assert brighter[at] == pytest.approx(scene[at] + sensor.black_level, abs=1.0)
+    # Far from the ball the scene shows either way.
+    assert hidden[0, 0] == brighter[0, 0]

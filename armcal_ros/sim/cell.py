@@ -396,7 +396,7 @@ class SimResult:
         epoch = self.epoch_index(j, f.exposure_ns[i])
         cam = self.camera_epochs[j][epoch][1]
         rng = np.random.default_rng([self.seed, 1009, int(i)])
-        patches = []
+        patches, occluders = [], []
         if clean or f.occlusion[i] in (OCCLUSION_NONE, OUTSIDE_IMAGE):
             centres = f.exposure_markers[i]
             if np.ptp(centres, axis=0).max() < 1e-7:
@@ -404,10 +404,14 @@ class SimResult:
             depth = cam.to_camera(centres[:1])[0, 2]
             blur = np.hypot(sensor.defocus_sigma,
                             sensor.defocus_slope * (depth - self._focus(cam)))
+            hides = not clean and (sensor.clutter_level > 0 or sensor.clutter_spots > 0)
             got = marker_signal(cam, centres, self.settings.marker_radius, sensor,
-                                0.0 if clean else blur, led_axis=self.led_axis(i, sensor))
+                                0.0 if clean else blur, led_axis=self.led_axis(i, sensor),
+                                with_alpha=hides)
             if got is not None:
-                patches.append(got)
+                patches.append(got[:3])
+                if hides:
+                    occluders.append((got[0], got[1], got[3]))
         if not clean:
             patches += glint_patches(cam, rng, sensor, near_uv=f.uv[i])
         if clean:
@@ -420,7 +424,7 @@ class SimResult:
         if gain != 1.0:
             patches = [(u0, v0, gain * p) for u0, v0, p in patches]
             background = None if background is None else gain * background
-        return expose(cam, patches, rng, sensor, encoding, background)
+        return expose(cam, patches, rng, sensor, encoding, background, occluders)
 
     def exposure_factor(self, i, sensor: Optional[SensorModel] = None):
         """

@@ -50,7 +50,9 @@ cell behind it.  ``clutter_level`` > 0 gives each camera a static scene (:func:`
 shaded surfaces, boxes, discs and bars of random brightness around that level, with sharp
 edges; ``clutter_spots`` adds static round bright spots the size and brightness of the
 marker (indicator lamps, polished bolt heads) - look-alikes only their stillness gives away.
-Shot and read noise then apply to every pixel.
+Shot and read noise then apply to every pixel.  The ball is opaque: it hides the scene in
+proportion to its blurred coverage, so a lit ball's unlit side is darker than a brighter
+scene it stands before.
 
 An LED in a diffusing ball (``SensorModel.led_axis``) is brightest where the LED points, with
 an angular fall-off; the bright side turns with the tool, so its centroid's offset depends on
@@ -228,14 +230,16 @@ def vignetting(cam, u, v):
 
 
 def marker_signal(cam, centres, radius, sensor: SensorModel, blur_sigma, margin=3,
-                  led_axis=None):
+                  led_axis=None, with_alpha=False):
     """
     Noise-free marker signal in DN on a window around the marker.
 
     ``centres`` (K, 3) are the sphere centre's world positions at instants spread over the
     exposure (motion blur is their average); ``led_axis`` the world direction the LED points
     in this frame (with ``sensor.led_axis``).  Returns (u0, v0, patch) with patch (h, w) in
-    DN, or None when the window misses the image.
+    DN, or None when the window misses the image.  ``with_alpha`` returns (u0, v0, patch,
+    alpha) with alpha (h, w) the fraction of each pixel's light that comes from the ball
+    (its coverage, through the same motion and blur): what it hides of a scene behind it.
     """
     centres = np.atleast_2d(np.asarray(centres, float))
     uv = cam.project(centres)
@@ -251,15 +255,21 @@ def marker_signal(cam, centres, radius, sensor: SensorModel, blur_sigma, margin=
     if u1 <= 0 or v1 <= 0 or u0 >= cam.width or v0 >= cam.height:
         return None
     w, h = u1 - u0, v1 - v0
-    signal = sensor.peak * sphere_coverage(cam, centres, radius, u0, v0, w, h,
-                                           sensor.supersample, sensor.lamp, sensor.ambient,
-                                           led_axis, sensor.led_falloff)
+    shaded = sphere_coverage(cam, centres, radius, u0, v0, w, h, sensor.supersample,
+                             sensor.lamp, sensor.ambient, led_axis, sensor.led_falloff)
+    signal = sensor.peak * shaded
     if sensor.vignetting:
         vv, uu = np.mgrid[v0:v1, u0:u1]
         signal *= vignetting(cam, uu, vv)
     if blur_sigma > 0:
         signal = gaussian_filter(signal, blur_sigma, mode='constant', truncate=4.0)
-    return u0, v0, signal
+    if not with_alpha:
+        return u0, v0, signal
+    alpha = shaded if sensor.lamp is None and led_axis is None else \
+        sphere_coverage(cam, centres, radius, u0, v0, w, h, sensor.supersample)
+    if blur_sigma > 0:
+        alpha = gaussian_filter(alpha, blur_sigma, mode='constant', truncate=4.0)
+    return u0, v0, signal, alpha
 
 
 def _paste(image, u0, v0, patch):
@@ -327,14 +337,18 @@ def clutter_scene(width, height, sensor: SensorModel, rng):
     return np.clip(scene, 0, 250)
 
 
-def expose(cam, patches, rng, sensor: SensorModel, encoding='mono8', background=None):
+def expose(cam, patches, rng, sensor: SensorModel, encoding='mono8', background=None,
+           occluders=()):
     """
     Turn signal patches [(u0, v0, DN)] into an 8-bit image with shot and read noise.
 
     ``encoding`` is mono8, rgb8 or bgr8 (colour: the same signal through ``colour_gains``,
     independent noise per channel).  ``background`` (H, W) DN is a static scene behind the
-    patches (:func:`clutter_scene`; each pixel shows the brighter of the two); with it every
-    pixel gets shot and read noise.
+    patches (:func:`clutter_scene`); with it every pixel gets shot and read noise.  Where
+    ``occluders`` [(u0, v0, alpha)] (:func:`marker_signal` ``with_alpha``) cover it, the scene
+    is hidden: a pixel shows ``signal + (1 - alpha) scene`` - an opaque ball in front, its
+    unlit side darker than a bright scene it stands before.  Without them the brighter of
+    signal and scene is shown.
     """
     if encoding not in ('mono8', 'rgb8', 'bgr8'):
         raise ValueError(f'encoding must be mono8, rgb8 or bgr8, got {encoding!r}')
@@ -351,9 +365,12 @@ def expose(cam, patches, rng, sensor: SensorModel, encoding='mono8', background=
             region = _paste(signal, u0, v0, p * g)
             if region is not None:
                 regions.append(region)
-        if background is not None:
-            # The marker hides what is behind it: exact inside its image, and close at its
-            # blurred rim, where the brighter of the two wins.
+        if background is not None and occluders:
+            alpha = np.zeros((H, W))
+            for u0, v0, a in occluders:
+                _paste(alpha, u0, v0, a)
+            signal = signal + (1.0 - np.minimum(alpha, 1.0)) * (background * g)
+        elif background is not None:
             signal = np.maximum(signal, background * g)
         if full_noise:
             vals = sensor.black_level + rng.normal(0.0, sensor.read_noise, (H, W))

@@ -93,8 +93,12 @@ def _blur_matrix(d, sigma):
 class _Model:
     """The model images of one patch: the bases of (2) for a geometry, and the linear solve."""
 
-    def __init__(self, patch, u0, v0):
+    def __init__(self, patch, u0, v0, scene=None):
         self.y = patch.astype(float).ravel()
+        # The scene behind the ball, which it hides: its pixels' share in the blurred
+        # outline is taken off (the last basis, its coefficient ~1).
+        self.scene = None if scene is None else np.asarray(scene, float).ravel()
+        self.n_linear = 5 if scene is None else 6
         self.h, self.w = patch.shape
         S = SUPERSAMPLE
         a = (np.arange(S) + 0.5) / S - 0.5
@@ -117,7 +121,7 @@ class _Model:
         return self._ly, self._lxt
 
     def bases(self, g, p):
-        """Return the (N, 5) basis images for geometry ``g`` and lit side from shading ``p``."""
+        """Return the (N, 5 or 6) basis images for geometry ``g``, the lit side from ``p``."""
         cx, cy, r, sigma = g
         dx = (self.us - cx) / r
         dy = (self.vs - cy) / r
@@ -128,17 +132,19 @@ class _Model:
         lit = cov if p is None else cov * (p[0] * dx[None, :] + p[1] * dy[:, None]
                                            + p[2] * z > 0)
         ly, lxt = self._operators(sigma)
-        A = np.empty((self.h * self.w, 5))
+        A = np.empty((self.h * self.w, self.n_linear))
         A[:, 0] = self._ones
         A[:, 1] = (ly @ cov @ lxt).ravel()
         A[:, 2] = (ly @ (lit * dx[None, :]) @ lxt).ravel()
         A[:, 3] = (ly @ (lit * dy[:, None]) @ lxt).ravel()
         A[:, 4] = (ly @ (lit * z) @ lxt).ravel()
+        if self.scene is not None:
+            A[:, 5] = -A[:, 1] * self.scene
         return A
 
     def image(self, theta):
         """Return the modelled pixels (N,) and the bases (N, 5) at the parameter vector."""
-        A = self.bases(theta[:4], theta[6:])
+        A = self.bases(theta[:4], theta[6:9])
         return A @ theta[4:], A
 
 
@@ -161,7 +167,7 @@ COLD_FINALISTS = 2
 
 
 def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
-                      max_iterations=30, tolerance=3e-3):
+                      max_iterations=30, tolerance=3e-3, scene=None):
     """
     Fit the shaded-sphere model (module doc) to ``patch`` and return a :class:`ShadedFit`.
 
@@ -171,6 +177,13 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
     it the :data:`COLD_STARTS` race and the best finish (:data:`COLD_RACE_ITERATIONS`).  The
     radius is bounded to [radius0 / 2, 2 radius0].  Converged when a step moves the centre
     and radius by less than ``tolerance`` px.
+
+    ``scene`` (h, w), the static scene behind the ball where it is known (the detector's
+    median of earlier frames), makes ``patch`` the frame minus that scene - unclipped - and
+    the model the ball drawn over it: ``m = B + ball - k c S`` with c the ball's blurred
+    coverage (the second basis) and k ~ 1 a linear parameter.  Fitting the ball alone to a
+    frame minus its scene, clipped at zero, shaded the disc with the scene it hides (a ball
+    over clutter 0.15-0.3 px off on the simulator's cluttered cell).
     """
     patch = np.asarray(patch)
     if patch.ndim != 2 or min(patch.shape) < 5:
@@ -178,19 +191,24 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
     uv0 = np.asarray(uv0, float).reshape(2)
     if not (radius0 > 0 and sigma0 > 0):
         raise ValueError(f'radius0 and sigma0 must be > 0, got {radius0}, {sigma0}')
-    model = _Model(patch, u0, v0)
+    if scene is not None and np.shape(scene) != patch.shape:
+        raise ValueError(f'scene must have the patch\'s shape {patch.shape}, got '
+                         f'{np.shape(scene)}')
+    model = _Model(patch, u0, v0, scene)
+    occlusion = [] if scene is None else [1.0]
     level = float(np.median(np.concatenate([patch[0], patch[-1], patch[:, 0], patch[:, -1]])))
     top = float(patch.max()) - level
     geometry = [uv0[0], uv0[1], float(radius0), min(max(sigma0, SIGMA_MIN), SIGMA_MAX), level]
     if shading0 is not None:
         # A warm start is usually within the quadratic region: a small damping to begin with.
         shading0 = np.asarray(shading0, float).reshape(4)
-        best = _levenberg_marquardt(model, np.r_[geometry, shading0], radius0, top, 1e-6,
+        best = _levenberg_marquardt(model, np.r_[geometry, shading0, occlusion], radius0, top,
+                                    1e-6,
                                     max_iterations, tolerance)
     else:
         race = max(1, min(COLD_RACE_ITERATIONS, max_iterations))
         runs = [_levenberg_marquardt(model, np.r_[geometry, 0.4 * top, 0.6 * top * np.asarray(
-            light)], radius0, top, 1e-3, race, tolerance) for light in COLD_STARTS]
+            light), occlusion], radius0, top, 1e-3, race, tolerance) for light in COLD_STARTS]
         runs.sort(key=lambda r: r[1])
         best = None
         for theta, cost, it, converged, lam in runs[:COLD_FINALISTS]:
@@ -206,13 +224,13 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
     status, message = 'ok', ''
     if not converged:
         status, message = 'not_converged', f'no convergence in {max_iterations} iterations'
-    elif coef[1] + np.linalg.norm(coef[2:]) <= 0:
+    elif coef[1] + np.linalg.norm(coef[2:5]) <= 0:
         status, message = 'no_ball', 'the fitted ball is not brighter than its background'
     elif not 0.5 * radius0 < g[2] < 2.0 * radius0:
         status, message = 'radius', (f'fitted radius {g[2]:.2f} px at a bound (start '
                                      f'{radius0:.2f})')
     return ShadedFit(uv=g[:2].copy(), radius=float(g[2]), sigma=float(g[3]),
-                     shading=coef[1:].copy(), background=float(coef[0]), rms=rms,
+                     shading=coef[1:5].copy(), background=float(coef[0]), rms=rms,
                      iterations=it, status=status, message=message)
 
 
@@ -227,9 +245,9 @@ def _levenberg_marquardt(model, theta, radius0, top, lam, max_iterations, tolera
     bright = SHADING_BOUND * max(top, 1e-9)
     theta = theta.copy()
     theta[5] = min(max(theta[5], 0.0), bright)
-    norm = np.linalg.norm(theta[6:])
+    norm = np.linalg.norm(theta[6:9])
     if norm > bright:
-        theta[6:] *= bright / norm
+        theta[6:9] *= bright / norm
     y = model.y
     m, A = model.image(theta)
     res = y - m
@@ -237,7 +255,7 @@ def _levenberg_marquardt(model, theta, radius0, top, lam, max_iterations, tolera
     h = 1e-3
     it = 0
     converged = False
-    J = np.empty((y.size, 9))
+    J = np.empty((y.size, theta.size))
     for it in range(1, max_iterations + 1):
         # Geometry by forward differences, the linear parameters exactly: their columns are
         # the bases themselves (d max(0, p.n) / dp = n on the lit side).
@@ -258,9 +276,11 @@ def _levenberg_marquardt(model, theta, radius0, top, lam, max_iterations, tolera
             trial[2] = min(max(trial[2], 0.5 * radius0, 0.5), 2.0 * radius0)
             trial[3] = min(max(trial[3], SIGMA_MIN), SIGMA_MAX)
             trial[5] = min(max(trial[5], 0.0), bright)
-            norm = np.linalg.norm(trial[6:])
+            norm = np.linalg.norm(trial[6:9])
             if norm > bright:
-                trial[6:] *= bright / norm
+                trial[6:9] *= bright / norm
+            if trial.size > 9:
+                trial[9] = min(max(trial[9], 0.0), 2.0)      # the hidden scene's share
             m_t, A_t = model.image(trial)
             res_t = y - m_t
             cost_t = res_t @ res_t

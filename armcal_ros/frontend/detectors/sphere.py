@@ -255,7 +255,8 @@ class SphereDetector(Detector):
         return [det]
 
     def _detect_region(self, gray, x0, y0, x1, y1, white, prefer=None):
-        sub = np.ascontiguousarray(gray[y0:y1, x0:x1])
+        sub = raw = np.ascontiguousarray(gray[y0:y1, x0:x1])
+        scene = None
         if self._scene_now is not None:
             scene = np.ascontiguousarray(self._scene_now[y0:y1, x0:x1])
             sub = cv2.subtract(sub, scene) if sub.dtype in (np.uint8, np.uint16) else \
@@ -311,7 +312,7 @@ class SphereDetector(Detector):
         if self.centre == 'shaded' and not self._fit_now:
             uv = np.full(2, np.nan)
         elif self.centre == 'shaded':
-            uv = self._shaded_centre(sub, best, x0, y0)
+            uv = self._shaded_centre(sub, best, x0, y0, raw, scene)
             if uv is None:
                 return None, 'shaded_fit_failed'
         det = Detection(uv=uv, id=0, quality=float(best.roundness * max(0.0, 1.0 - second)),
@@ -319,28 +320,48 @@ class SphereDetector(Detector):
                         centroid=centroid if self.centre == 'shaded' else None)
         return det, status
 
-    def _shaded_centre(self, sub, cand, x0, y0):
-        """Return the shaded-sphere centre (image coordinates) of ``cand``, or None."""
+    def _shaded_centre(self, sub, cand, x0, y0, raw=None, scene=None):
+        """
+        Return the shaded-sphere centre (image coordinates) of ``cand``, or None.
+
+        With the static scene known (``scene``, the region's; ``raw`` its frame) the ball is
+        fitted over it (:func:`.fit_shaded_sphere` ``scene``), not to ``sub`` whose clipped
+        subtraction shaded the ball with the scene it hides.
+        """
         centroid = cand.uv + (x0, y0)
         half = int(math.ceil(cand.radius + 3.0))
         cu, cv = int(round(cand.uv[0])), int(round(cand.uv[1]))
         if cu - half < 0 or cv - half < 0 or cu + half >= sub.shape[1] or \
                 cv + half >= sub.shape[0]:
             return None
-        patch = sub[cv - half:cv + half + 1, cu - half:cu + half + 1]
+        rows, cols = slice(cv - half, cv + half + 1), slice(cu - half, cu + half + 1)
+        behind = None
+        if scene is None:
+            patch = sub[rows, cols]
+        else:
+            behind = scene[rows, cols].astype(float)
+            patch = raw[rows, cols].astype(float) - behind
         u0, v0 = cu - half + x0, cv - half + y0
         # The moments' radius holds the blur: 2 sqrt(r^2 / 4 + sigma^2) for a disc.
         start = self._fit_start
         sigma0 = 0.8 if start is None else start[3]
-        radius0 = math.sqrt(max(cand.radius ** 2 - 4.0 * sigma0 ** 2, 0.25 * cand.radius ** 2))
+        at, size = centroid, cand.radius
+        if behind is not None:
+            # Over a scene brighter than its unlit side the ball stands out of the scene only
+            # where lit: a crescent whose moments start a fit off.  Where it differs from the
+            # scene, either way, is its whole disc.
+            got = _moments(np.abs(patch), u0, v0)
+            if got is not None:
+                at, size = got
+        radius0 = math.sqrt(max(size ** 2 - 4.0 * sigma0 ** 2, 0.25 * size ** 2))
         fit = None
         if start is not None and np.hypot(*(centroid - start[0])) < self.WARM_START_PX:
             fit = fit_shaded_sphere(patch, u0, v0, centroid + start[1], start[2], sigma0,
-                                    start[4])
+                                    start[4], scene=behind)
         if fit is None or not fit.ok or fit.rms > self.REFIT_RMS * start[5]:
             # No start, a failed one, or a fit much worse than the last: from several lights
             # (a warm start can carry a wrong minimum from frame to frame).
-            cold = fit_shaded_sphere(patch, u0, v0, centroid, radius0, sigma0)
+            cold = fit_shaded_sphere(patch, u0, v0, at, radius0, sigma0, scene=behind)
             if fit is None or not fit.ok or (cold.ok and cold.rms < fit.rms):
                 fit = cold
         if not fit.ok or np.hypot(*(fit.uv - centroid)) > max(1.0, cand.radius):
@@ -437,6 +458,23 @@ class SphereDetector(Detector):
         edge = any(touches)
         return _Candidate(uv=np.array([cu + rx0, cv + ry0]), radius=radius, roundness=roundness,
                           flux=flux, touches_edge=edge)
+
+
+def _moments(patch, u0, v0):
+    """
+    Return (centre (2,), radius) of the blob in ``patch`` (top-left pixel at u0, v0), or None.
+
+    Weights: what exceeds the patch's border level by three of its robust deviations.
+    """
+    border = np.concatenate([patch[0], patch[-1], patch[:, 0], patch[:, -1]])
+    level = float(np.median(border))
+    spread = 1.4826 * float(np.median(np.abs(border - level)))
+    w = np.clip(patch - level - 3.0 * spread, 0.0, None).astype(np.float32)
+    m = cv2.moments(w)
+    if m['m00'] <= 0:
+        return None
+    var = (m['mu20'] + m['mu02']) / m['m00']
+    return np.array([u0 + m['m10'] / m['m00'], v0 + m['m01'] / m['m00']]), math.sqrt(2.0 * var)
 
 
 def _median_of_five(frames):
