@@ -114,7 +114,7 @@ def test_an_absurdly_large_image_is_counted_and_never_queued(ros_context, tmp_pa
         node.queue.close()          # nothing is taken out: the queue shows what was put in
         callback = node._image_callback('cam1', Image)
         sizes = []
-        node.queue.put = lambda kind, item: sizes.append(len(item[1]._raw))
+        node.queue.put = lambda kind, item, **_: sizes.append(len(item[1]._raw))
         callback(raw(640, 480))
         callback(raw(4000, 2000))       # 8 MB after 0.3 MB frames
         callback(raw(640, 480))

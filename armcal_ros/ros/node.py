@@ -5,7 +5,7 @@ Threads and why:
 
 - the executor (a SingleThreadedExecutor in the main thread: rclpy's multi-threaded executor
   costs about twice the CPU per message) runs the subscription callbacks, which only append the
-  message to a bounded drop-oldest :class:`EventQueue`, the timers (diagnostics, solve
+  message to a bounded :class:`EventQueue`, the timers (diagnostics, solve
   scheduling) and the services, which never wait: ``~/calibrate`` and ``~/reset`` hand their
   work to the front-end worker, in order with the inputs;
 - one front-end worker thread owns the :class:`~armcal_ros.pipeline.SampleCollector` (not
@@ -14,7 +14,8 @@ Threads and why:
   CameraInfo, poses, TF and markers, saves the files and commits to the camera drivers.
 
 So a slow decode or a long solve never delays a callback, and a burst the worker cannot keep up
-with costs the oldest images (counted in diagnostics), never the joint states they need.
+with costs images (counted in diagnostics), thinned evenly in time per camera so that every
+dwell keeps some of its frames, never the joint states they need.
 
 Interface (node ``armcal``; README, "The ROS 2 node"): subscribes to ``joint_states_topic`` (or,
 with pose input, ``pose_topic`` carrying ``pose_type``) and ``image_topics`` (best effort);
@@ -101,8 +102,9 @@ _PTYPES = {
 #: Parameter names rclpy or the ROS tooling declare or accept on every node.
 _FOREIGN_PARAMETERS = ('use_sim_time', 'start_type_description_service')
 
-#: Queue bounds: ~10 s of joint states at 500 Hz; images for ~1.3 s of three 15 Hz cameras
-#: (about 18 MB of VGA mono8) - the front end's budget before it drops the oldest.
+#: Queue bounds: ~10 s of joint states at 500 Hz; 60 images, ~1.3 s of three 15 Hz cameras
+#: (about 18 MB of VGA mono8) - the front end's budget before it thins the queued images
+#: (evenly in time per camera, so that a worker behind its input keeps frames of every dwell).
 QUEUE_BOUNDS = {'joint': 5000, 'image': 60, 'control': None}
 #: With no input at all for this long, pending frames are decided and the open dwell closed.
 IDLE_FLUSH_S = 1.0
@@ -206,7 +208,7 @@ class CalibratorNode(Node):
         self._latency_said = {}
         self.engine.on_result(self._on_solve)
         self.engine.on_change(self._on_change)
-        self.queue = EventQueue(QUEUE_BOUNDS)
+        self.queue = EventQueue(QUEUE_BOUNDS, thinned=('image',))
         self._counts = {}
         self._per_camera = {}
         self._last_outcome_wall = None
@@ -441,11 +443,14 @@ class CalibratorNode(Node):
                     f'{camera}: message of {len(raw) / 1e6:.1f} MB, its images are about '
                     f'{typical / 1e6:.2f} MB: skipped', throttle_duration_sec=10.0)
                 return
-            self.queue.put('image', (camera, LazyMessage(raw, msg_type)))
             try:
                 sec, nanosec, frame = header_fields(raw)
             except ValueError:
-                return      # the front end counts and logs it when it reads the stamp
+                # The front end counts and logs it when it reads the stamp.
+                self.queue.put('image', (camera, LazyMessage(raw, msg_type)), key=camera)
+                return
+            self.queue.put('image', (camera, LazyMessage(raw, msg_type)), key=camera,
+                           stamp=sec * 1_000_000_000 + nanosec)
             self._image_arrived(camera, sec, nanosec, frame, raw)
         return callback
 
