@@ -3,7 +3,7 @@ The live node follows a knocked camera, on real rclpy and DDS.
 
 ``knocked_bag``: cam2 knocked by 1 deg and 4 mm half-way through 150 s, replayed at 2 x.  (At
 4 x the lamp-lit ball's centre fits, the solves every 2 s and 180 VGA frames a second are more
-than two cores carry: the node thinned two thirds of the images and kept too few of cam2's
+than two cores carry: the node dropped two thirds of the images and kept too few of cam2's
 views after the knock to recalibrate it within the bag.  At 2 x it keeps about 88 %.)
 
 The node must say what happened on /diagnostics, withdraw cam2's calibration while it has too
