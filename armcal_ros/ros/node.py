@@ -446,8 +446,9 @@ class CalibratorNode(Node):
             try:
                 sec, nanosec, frame = header_fields(raw)
             except ValueError:
-                # The front end counts and logs it when it reads the stamp.
-                self.queue.put('image', (camera, LazyMessage(raw, msg_type)), key=camera)
+                # The front end counts and logs it when it reads the stamp; without a stamp
+                # it is not thinned among its camera's frames.
+                self.queue.put('image', (camera, LazyMessage(raw, msg_type)))
                 return
             self.queue.put('image', (camera, LazyMessage(raw, msg_type)), key=camera,
                            stamp=sec * 1_000_000_000 + nanosec)
