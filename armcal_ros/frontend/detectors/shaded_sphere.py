@@ -125,8 +125,8 @@ class _Model:
         cx, cy, r, sigma = g
         # Only the sub-pixels of the disc's bounding box can be covered (the outline is
         # anti-aliased over half a sub-pixel outside the circle): the four fine images are
-        # computed there and blurred by those columns of the operators, a quarter of the
-        # patch's sub-pixels for a ball of a third of its width.
+        # computed there and blurred by those columns of the operators - about a seventh of
+        # the detector's patch (the radius plus 3 px each side) for a ball of 2 px radius.
         reach = r + 1.0 / SUPERSAMPLE
         iy = np.searchsorted(self.vs, (cy - reach, cy + reach))
         ix = np.searchsorted(self.us, (cx - reach, cx + reach))
