@@ -14,9 +14,9 @@ A new result replaces the current calibration only if it is not clearly worse: i
 converged, and no camera's image noise estimated from its residuals (the RMS corrected for the
 degrees of freedom its parameters took, :func:`_residuals_worse`) may exceed
 ``max(reject_rms_ratio x previous, previous + reject_rms_margin_px)``, nor its inlier
-fraction drop by more than ``reject_inlier_drop`` (fractions as expected rates,
-:func:`inlier_rate`).  A burst of bad detections therefore cannot overwrite a good
-calibration; the rejection is reported with its reason.
+fraction drop by more than ``reject_inlier_drop`` and by more than its counting noise explains
+(fractions as expected rates, :func:`inlier_fall_is_clear`).  A burst of bad detections
+therefore cannot overwrite a good calibration; the rejection is reported with its reason.
 
 Cameras on the arm (``EngineSettings.eye_in_hand``) looking at a static target are the same
 problem with the roles of base and link swapped: seen from the link, the target moves by
@@ -225,6 +225,30 @@ def inlier_rate(n_inliers, n_observations):
     "Accepting a solve").
     """
     return (n_inliers + 1.0) / (n_observations + 2.0)
+
+
+#: One-sided normal quantile of the inlier-fall test: a solve is refused for a fall that counting
+#: noise alone would give less than 5 % of the time.
+INLIER_FALL_Z = 1.645
+
+
+def inlier_fall_is_clear(old, new, drop, z=INLIER_FALL_Z):
+    """
+    Return True if the inlier rate fell from ``old`` to ``new`` (``(k, n)`` pairs) clearly.
+
+    Clearly means both: by more than ``drop`` (as expected rates, :func:`inlier_rate`), and by
+    more than ``z`` standard deviations of the two rates' counting noise.  Each rate's variance
+    is that of its Beta(k + 1, n - k + 1) posterior, p (1 - p) / (n + 3); the two are treated as
+    independent, which over-states the spread when the new solve holds the old one's
+    observations - the test errs towards accepting, as the judgement should when its yardstick
+    rests on a handful of observations.  So 7 of 7 then 8 of 11 (0.89 to 0.69, a spread of 0.16)
+    is accepted, while 100 of 100 then 85 of 100 (0.99 to 0.85, 0.04) and 20 of 20 then 15 of 20
+    (0.95 to 0.73, 0.10) are refused.
+    """
+    po, pn = inlier_rate(*old), inlier_rate(*new)
+    fall = po - pn
+    sd = np.sqrt(po * (1 - po) / (old[1] + 3.0) + pn * (1 - pn) / (new[1] + 3.0))
+    return bool(fall > drop and fall > z * sd)
 
 
 @dataclass
@@ -902,7 +926,8 @@ class CalibrationEngine:
                                         elapsed)
                 fo = inlier_rate(o.n_inliers, o.n_observations)
                 fn = inlier_rate(c.n_inliers, c.n_observations)
-                if fn < fo - s.reject_inlier_drop:
+                if inlier_fall_is_clear((o.n_inliers, o.n_observations),
+                                        (c.n_inliers, c.n_observations), s.reject_inlier_drop):
                     return SolveOutcome(False, f'rejected: {name} inlier fraction fell from '
                                         f'{o.n_inliers}/{o.n_observations} to '
                                         f'{c.n_inliers}/{c.n_observations} (rates {fo:.2f}, '

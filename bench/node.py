@@ -168,10 +168,10 @@ def run_rate(bag, params, rate, gt, out_dir, env, cameras, extra=()):
         cpu.start()
         time.sleep(1.5)
         t0 = time.monotonic()
-        stats = replay(node, bag, rate=rate, on_publish=on_publish)
+        stats = replay(node, bag, rate=rate, on_publish=on_publish, discovery_timeout=5.0)
         t1 = time.monotonic()
         time.sleep(3.0)          # the idle flush closes the last dwell
-        cpu_avg, cpu_peak = cpu.between(t0, t1)
+        cpu_avg, cpu_peak = cpu.between(t0 + stats.discovery_s, t1)
         final = dict(diag)
     finally:
         cpu.stop.set()

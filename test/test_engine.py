@@ -191,6 +191,20 @@ def test_inlier_fractions_are_compared_as_expected_rates():
     assert inlier_rate(100, 100) - inlier_rate(85, 100) > 0.1
 
 
+@pytest.mark.parametrize('old,new,clear', [
+    ((7, 7), (8, 11), False),      # the real recording's first solves: 2 outliers among few
+    ((7, 7), (12, 14), False),     # within the tolerated drop
+    ((100, 100), (85, 100), True),   # a burst over a well-observed camera
+    ((20, 20), (15, 20), True),
+    ((10, 10), (7, 10), True),
+    ((100, 100), (93, 100), False),  # significant, but within the tolerated drop
+    ((50, 60), (55, 60), False),     # a rise
+])
+def test_an_inlier_fall_must_exceed_the_drop_and_the_counting_noise(old, new, clear):
+    from armcal_ros.engine import inlier_fall_is_clear
+    assert inlier_fall_is_clear(old, new, 0.1) is clear
+
+
 def test_a_fit_without_redundancy_sets_no_yardstick():
     from armcal_ros.core.camera import Camera
     from armcal_ros.core.results import CameraCalibration

@@ -515,6 +515,30 @@ def test_bad_parameters_stop_the_start_with_the_reason(ros_env, tmp_path, extra,
         assert w in log, log
 
 
+def test_replay_starts_once_the_subscriber_has_matched(ros_env, client, tmp_path):
+    """The first message reaches a subscriber that is up, without sleeping out ``--delay``."""
+    from armcal_ros.io.bag import BagWriter
+    bag = tmp_path / 'short'
+    with BagWriter(bag) as w:
+        for k in range(5):
+            w.write_joint_state('/match_test/joint_states', 1_000_000_000 + k * 10_000_000,
+                                ['a'], [0.01 * (k + 1)])
+    got, sub = client.record(JointState, '/match_test/joint_states',
+                             QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    # The bound is far above anything discovery takes on one host; a replay that slept it out
+    # would not have ended within the wait below.
+    proc = start_replay(ros_env, bag, 1, tmp_path / 'replay.log', delay=120)
+    try:
+        wait_until(lambda: proc.p.poll() is not None, 60, 'the replay to end')
+    finally:
+        proc.kill()
+        client.node.destroy_subscription(sub)
+    assert proc.p.returncode == 0, proc.log()
+    assert 's of discovery first' in proc.log()
+    wait_until(lambda: len(got) == 5, 10, 'all five messages')
+    assert [m.position[0] for _, m in got] == pytest.approx([0.01, 0.02, 0.03, 0.04, 0.05])
+
+
 def test_replay_loops_and_stops_cleanly_on_sigint(ros_env, client, tmp_path):
     from armcal_ros.io.bag import BagWriter
     bag = tmp_path / 'small'

@@ -7,6 +7,12 @@ t_i is the bag (receive) time.  Each message is deserialised into its rclpy clas
 a corrupt message is counted and skipped rather than sent to subscribers that would choke on it.
 Publishers are reliable by default (they match reliable and best-effort subscribers);
 ``--best-effort`` makes them best-effort, as many camera drivers are.
+
+Playback starts once discovery is done, not after a fixed sleep: every subscription the ROS
+graph shows on a replayed topic must have matched its publisher (and at least one must exist),
+steadily for :data:`MATCH_SETTLE_S`, or ``--delay`` seconds must have passed.  A fixed sleep
+either wastes time or, on a loaded machine, loses the bag's first messages to a subscriber that
+had not matched yet - and a short recording's first places are a large part of it.
 """
 
 import importlib
@@ -21,6 +27,12 @@ from armcal_ros.io.bag import bag_topics, iter_raw
 from armcal_ros.params import number_arg
 
 
+#: How long the matched state must hold before playback starts.  A participant's endpoints are
+#: announced together but may be matched one by one; a few discovery round trips (tens of ms on
+#: one host) cover that.
+MATCH_SETTLE_S = 0.25
+
+
 @dataclass
 class ReplayStats:
     """What a replay did: messages published and skipped per topic, loops, wall time."""
@@ -31,6 +43,8 @@ class ReplayStats:
     wall_s: float = 0.0
     bag_s: float = 0.0
     max_lag_s: float = 0.0
+    discovery_s: float = 0.0
+    matched: Dict[str, int] = field(default_factory=dict)
 
 
 def message_class(msgtype):
@@ -44,8 +58,35 @@ def message_class(msgtype):
         raise ValueError(f'message type {msgtype} is not installed: {exc}') from exc
 
 
+def wait_for_subscribers(node, publishers, timeout, stop, settle=MATCH_SETTLE_S):
+    """
+    Wait until ``publishers`` ({topic: rclpy publisher}) have matched the graph's subscribers.
+
+    Returns once at least one subscription exists and, for every topic, the publisher has
+    matched as many subscriptions as ``node``'s graph shows, and that has held for ``settle``
+    seconds; or after ``timeout`` seconds; or when ``stop`` is set.  Returns {topic: matched}.
+    A subscription that the graph shows but that never matches (incompatible QoS, e.g. a
+    reliable reader of ``--best-effort`` publishers) makes the wait run to ``timeout``.
+    """
+    t_end = time.monotonic() + timeout
+    since = None
+    while True:
+        matched = {t: p.get_subscription_count() for t, p in publishers.items()}
+        ready = (sum(matched.values()) > 0 and
+                 all(matched[t] >= node.count_subscribers(t) for t in publishers))
+        now = time.monotonic()
+        if not ready:
+            since = None
+        elif since is None:
+            since = now
+        if (since is not None and now - since >= settle) or now >= t_end:
+            return matched
+        if stop.wait(min(0.02, max(0.0, t_end - now))):
+            return matched
+
+
 def replay(node, bag, rate=1.0, loop=False, topics=None, reliable=True, depth=100,
-           stop: Optional[threading.Event] = None,
+           stop: Optional[threading.Event] = None, discovery_timeout=0.0,
            on_publish: Optional[Callable[[str, int, float, object], None]] = None,
            log: Optional[Callable[[str], None]] = None) -> ReplayStats:
     """
@@ -54,6 +95,8 @@ def replay(node, bag, rate=1.0, loop=False, topics=None, reliable=True, depth=10
     ``rate`` scales time (2.0 plays twice as fast); ``loop`` repeats until ``stop`` is set;
     ``topics`` restricts the topics (default all).  ``on_publish(topic, bag_t_ns, wall_time,
     msg)`` is called after each publish (benchmarks use it to time the node's reaction).
+    With ``discovery_timeout`` > 0 playback waits, at most that long, until the publishers
+    have matched the subscribers (:func:`wait_for_subscribers`); the wait is in the stats.
     """
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from rclpy.serialization import deserialize_message
@@ -86,6 +129,17 @@ def replay(node, bag, rate=1.0, loop=False, topics=None, reliable=True, depth=10
     if not pubs:
         raise ValueError(f'{bag}: no topic can be replayed')
     stats = ReplayStats(published={t: 0 for t in pubs}, skipped={t: 0 for t in pubs})
+    if discovery_timeout > 0:
+        t_wait = time.monotonic()
+        stats.matched = wait_for_subscribers(node, pubs, discovery_timeout, stop)
+        stats.discovery_s = time.monotonic() - t_wait
+        unmatched = {t: node.count_subscribers(t) - n for t, n in stats.matched.items()
+                     if node.count_subscribers(t) > n}
+        if log and not stop.is_set() and (unmatched or not sum(stats.matched.values())):
+            log(f'after {stats.discovery_s:.1f} s of discovery '
+                + (f'subscriptions have not matched on {unmatched} (incompatible QoS?)'
+                   if unmatched else 'no subscriber is matched')
+                + '; playing anyway')
     t_start = time.monotonic()
     while not stop.is_set():
         t0_wall, t0_bag = None, None
@@ -127,9 +181,10 @@ def add_arguments(p):
     p.add_argument('--topics', nargs='+', metavar='TOPIC', help='only these topics')
     p.add_argument('--best-effort', action='store_true',
                    help='best-effort publishers (default reliable: matches every subscriber)')
-    p.add_argument('--delay', type=number_arg(float, 0.0, 3600.0), default=1.0, metavar='S',
-                   help='seconds to wait after creating the publishers, for discovery '
-                        '(default 1)')
+    p.add_argument('--delay', type=number_arg(float, 0.0, 3600.0), default=3.0, metavar='S',
+                   help='at most this many seconds of discovery: playback starts as soon as '
+                        'every subscriber the graph shows on the topics has matched '
+                        '(default 3)')
     p.add_argument('--quiet', action='store_true', help='no summary line')
 
 
@@ -152,10 +207,9 @@ def run(args):
 
     def play():
         try:
-            if stop.wait(args.delay):
-                return
             result['stats'] = replay(node, args.bag, args.rate, args.loop, args.topics,
                                      reliable=not args.best_effort, stop=stop,
+                                     discovery_timeout=args.delay,
                                      log=lambda m: node.get_logger().warning(m))
         except Exception as exc:  # noqa: B902 - reported by the main thread
             result['error'] = exc
@@ -177,6 +231,7 @@ def run(args):
         total = sum(stats.published.values())
         skipped = sum(stats.skipped.values())
         print(f'replayed {total} messages ({stats.bag_s:.1f} s of bag in {stats.wall_s:.1f} s, '
-              f'{stats.loops} loop(s), max lag {stats.max_lag_s * 1e3:.0f} ms)'
+              f'{stats.loops} loop(s), max lag {stats.max_lag_s * 1e3:.0f} ms, '
+              f'{stats.discovery_s:.1f} s of discovery first)'
               + (f'; skipped {skipped} corrupt' if skipped else ''), file=sys.stderr)
     return 0

@@ -208,8 +208,8 @@ def start_node(env, params, log_path, ignore_sigint=False):
                  params], env, log_path, ignore_sigint)
 
 
-def start_replay(env, bag, rate, log_path, *options, delay=0.5):
-    """Start ``armcal replay`` of ``bag`` at ``rate`` after ``delay`` s for discovery."""
+def start_replay(env, bag, rate, log_path, *options, delay=5.0):
+    """Start ``armcal replay`` of ``bag`` at ``rate``, after ``delay`` s of discovery at most."""
     return Proc([sys.executable, '-m', 'armcal_ros.cli', 'replay', str(bag), *options,
                  '--rate', str(rate), '--delay', str(delay)], env, log_path)
 
