@@ -263,3 +263,65 @@ def test_a_parked_marker_becomes_scenery_and_is_missed_not_mistaken(rng):
     # once it moves it is found again
     d = det.detect(quantise(render_sphere((420.0, 300.0), 4.0, amp=150, bg=3.0), rng, noise=1.0))
     assert len(d) == 1 and np.linalg.norm(d[0].uv - (420.0, 300.0)) < 0.2
+
+
+def render_lit_ball(centre, radius, peak=160.0, ambient=0.25, light=(0.0, -0.8, 0.6),
+                    shape=SHAPE, super_sampling=4):
+    """
+    Return (image, coverage) of a matte ball lit by one distant lamp, ``ambient`` on its far side.
+
+    Brightness peak (ambient + (1 - ambient) max(0, n . l)) at the surface normal n = (x, y, -z)
+    (image axes, z towards the camera), sampled ``super_sampling``^2 times per pixel, then
+    blurred by a Gaussian of 0.8 px; ``coverage`` is the blurred disc (what the ball hides).
+    """
+    s = super_sampling
+    light = np.asarray(light, float) / np.linalg.norm(light)
+    ys, xs = np.mgrid[0:shape[0] * s, 0:shape[1] * s]
+    x = ((xs + 0.5) / s - 0.5 - centre[0]) / radius
+    y = ((ys + 0.5) / s - 0.5 - centre[1]) / radius
+    inside = x * x + y * y < 1.0
+    z = np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, None))
+    lit = np.clip(x * light[0] + y * light[1] - z * light[2], 0.0, None)
+    ball = inside * peak * (ambient + (1.0 - ambient) * lit)
+    pool = (lambda a: cv2.GaussianBlur(a.reshape(shape[0], s, shape[1], s).mean(axis=(1, 3)),
+                                       (0, 0), 0.8))
+    return pool(ball), pool(inside.astype(float))
+
+
+@pytest.mark.parametrize('centre', ['shaded', 'centroid'])
+def test_a_lamp_lit_ball_darker_than_the_scene_on_its_far_side_is_found(rng, centre):
+    """
+    Over clutter brighter than its unlit side, the ball stands out of the scene only where lit.
+
+    Measured on that crescent alone (the frame minus the scene, clipped at zero) it failed the
+    roundness test: here 41 of 100 frames found, half the places being in front of a bright
+    box (with the centroid, 35 found and 12 taken elsewhere).  Measured on where the frame
+    differs from the scene either way it is the whole disc: all 100 found.  The shaded centre
+    is then right too (median 0.05 px); the centroid is pulled towards the lamp (1.3 px).
+    """
+    scene = _cluttered_scene(rng)
+    spots, per = _dwells(rng, 14, 10)
+    for c in spots[1::2]:        # every other place in front of a bright box
+        u, v = int(c[0]), int(c[1])
+        scene[v - 20:v + 20, u - 20:u + 20] = 100.0
+    det = SphereDetector(centre=centre)
+    found = wrong = seen = 0
+    errors = []
+    for k, c in enumerate(spots):
+        ball, cover = render_lit_ball(c, 4.0, light=(0.3, -0.8, -0.5))
+        view = ball + (1.0 - cover) * scene
+        for _ in range(per):
+            d = det.detect(quantise(view, rng, noise=2.0))
+            if k < 4:          # the scene is known after 33 images
+                continue
+            seen += 1
+            if d:
+                e = np.linalg.norm(d[0].uv - c)
+                found += e < 2.0
+                wrong += e >= 2.0
+                errors.append(e)
+    assert found > 0.9 * seen and wrong == 0, (found, wrong, seen)
+    if centre == 'shaded':
+        assert np.median(errors) < 0.1 and max(errors) < 0.5, errors
+    else:
+        assert np.median(errors) > 0.3, errors        # the centroid's light bias
