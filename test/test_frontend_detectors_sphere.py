@@ -295,9 +295,9 @@ def test_a_lamp_lit_ball_darker_than_the_scene_on_its_far_side_is_found(rng, cen
 
     Measured on that crescent alone (the frame minus the scene, clipped at zero) it failed the
     roundness test: here 41 of 100 frames found, half the places being in front of a bright
-    box (with the centroid, 35 found and 12 taken elsewhere).  Measured on where the frame
-    differs from the scene either way it is the whole disc: all 100 found.  The shaded centre
-    is then right too (median 0.05 px); the centroid is pulled towards the lamp (1.3 px).
+    box (47 with the centroid).  Weighed again on where the frame differs from the scene
+    either way, it is the whole disc: 94 and 100 found.  The shaded centre is then right too
+    (median 0.05 px); the centroid is pulled towards the lamp (1.8 px).
     """
     scene = _cluttered_scene(rng)
     spots, per = _dwells(rng, 14, 10)
@@ -316,9 +316,11 @@ def test_a_lamp_lit_ball_darker_than_the_scene_on_its_far_side_is_found(rng, cen
                 continue
             seen += 1
             if d:
+                # Within the ball's image it is the ball (the centroid of a crescent is off
+                # towards the lamp); beyond, something else was taken for it.
                 e = np.linalg.norm(d[0].uv - c)
-                found += e < 2.0
-                wrong += e >= 2.0
+                found += e < 4.0
+                wrong += e >= 4.0
                 errors.append(e)
     assert found > 0.9 * seen and wrong == 0, (found, wrong, seen)
     if centre == 'shaded':
