@@ -288,8 +288,8 @@ def render_lit_ball(centre, radius, peak=160.0, ambient=0.25, light=(0.0, -0.8, 
     return pool(ball), pool(inside.astype(float))
 
 
-@pytest.mark.parametrize('centre', ['shaded', 'centroid'])
-def test_a_lamp_lit_ball_darker_than_the_scene_on_its_far_side_is_found(rng, centre):
+@pytest.mark.parametrize('centre,radius', [('shaded', 4.0), ('centroid', 4.0), ('shaded', 2.3)])
+def test_a_lamp_lit_ball_darker_than_the_scene_on_its_far_side_is_found(rng, centre, radius):
     """
     Over clutter brighter than its unlit side, the ball stands out of the scene only where lit.
 
@@ -297,7 +297,10 @@ def test_a_lamp_lit_ball_darker_than_the_scene_on_its_far_side_is_found(rng, cen
     roundness test: here 41 of 100 frames found, half the places being in front of a bright
     box (47 with the centroid).  Weighed again on where the frame differs from the scene
     either way, it is the whole disc: 94 and 100 found.  The shaded centre is then right too
-    (median 0.05 px); the centroid is pulled towards the lamp (1.8 px).
+    (median 0.05 px); the centroid is pulled towards the lamp (1.8 px).  A small ball's
+    crescent under-states its size, and a fit started there took a smaller ball towards the
+    lamp (radius 2.3 px: 79 found, up to 2.2 px off); started at the size of the camera's
+    recent fits, 99 found, within 0.4 px (and 100 of the larger ball's).
     """
     scene = _cluttered_scene(rng)
     spots, per = _dwells(rng, 14, 10)
@@ -308,7 +311,7 @@ def test_a_lamp_lit_ball_darker_than_the_scene_on_its_far_side_is_found(rng, cen
     found = wrong = seen = 0
     errors = []
     for k, c in enumerate(spots):
-        ball, cover = render_lit_ball(c, 4.0, light=(0.3, -0.8, -0.5))
+        ball, cover = render_lit_ball(c, radius, light=(0.3, -0.8, -0.5))
         view = ball + (1.0 - cover) * scene
         for _ in range(per):
             d = det.detect(quantise(view, rng, noise=2.0))
@@ -319,11 +322,11 @@ def test_a_lamp_lit_ball_darker_than_the_scene_on_its_far_side_is_found(rng, cen
                 # Within the ball's image it is the ball (the centroid of a crescent is off
                 # towards the lamp); beyond, something else was taken for it.
                 e = np.linalg.norm(d[0].uv - c)
-                found += e < 4.0
-                wrong += e >= 4.0
+                found += e < radius
+                wrong += e >= radius
                 errors.append(e)
     assert found > 0.9 * seen and wrong == 0, (found, wrong, seen)
     if centre == 'shaded':
-        assert np.median(errors) < 0.1 and max(errors) < 0.5, errors
+        assert np.median(errors) < 0.2 and max(errors) < 0.5, errors
     else:
         assert np.median(errors) > 0.3, errors        # the centroid's light bias

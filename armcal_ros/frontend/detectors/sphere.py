@@ -4,6 +4,7 @@ The sphere detector: a bright ball or LED, one round blob brighter than its surr
 The class docstring has the steps, the ambiguity policy and the static-scene model.
 """
 
+from collections import deque
 from dataclasses import dataclass
 import math
 
@@ -102,7 +103,8 @@ class SphereDetector(Detector):
     3-4 is weighed again on where the frame differs from the scene either way, |frame -
     scene|, over the component grown by two pixels: the whole disc (measured on the
     simulator's lamp-lit cluttered cell, still frames found went from 70 % to 91 %, and those
-    taken elsewhere from 42 to 16 of 1098).  A due
+    taken elsewhere from 42 to 16 of 1098; with the shaded fit started at the size of the
+    camera's recent fits, ``RADIUS_HINT_FITS``, 93 % and 3).  A due
     image is kept only if the marker was not found in it or has moved since the last kept one
     (by two radii), so a dwelling or slowly moving marker does not enter the median - where
     it did (an earlier version kept every due image) its subtraction left a crescent with a
@@ -130,6 +132,12 @@ class SphereDetector(Detector):
     #: for a whole dwell on the simulator's lamp-lit cluttered cell.
     REFIT_Z = 2.33
 
+    #: A cold fit starts at the median radius of the camera's last ``RADIUS_HINT_FITS`` fits
+    #: when the blob's moments say it is more than ``RADIUS_HINT_RATIO`` times smaller: the
+    #: ball's distance, hence its image's size, changes little from place to place, while the
+    #: moments of a ball lit from one side over a bright scene see only its lit part.
+    RADIUS_HINT_FITS = 9
+    RADIUS_HINT_RATIO = 1.5
     #: Images kept for the static scene, how often one is kept (while it is learnt, then
     #: after), and after how many intervals one is kept even if the marker has not moved.
     SCENE_FRAMES = 5
@@ -168,6 +176,7 @@ class SphereDetector(Detector):
             raise ValueError(f'centre must be one of {", ".join(self.CENTRES)}, got {centre!r}')
         self.centre = centre
         self._fit_start = None
+        self._radii = deque(maxlen=self.RADIUS_HINT_FITS)
         self._fit_now = True
         self._scene_frames = []
         self._scene = None
@@ -342,7 +351,8 @@ class SphereDetector(Detector):
         subtraction shaded the ball with the scene it hides.
         """
         centroid = cand.uv + (x0, y0)
-        half = int(math.ceil(cand.radius + 3.0))
+        hint = _median(np.array(self._radii)) if len(self._radii) >= 3 else 0.0
+        half = int(math.ceil(max(cand.radius, hint) + 3.0))
         cu, cv = int(round(cand.uv[0])), int(round(cand.uv[1]))
         if cu - half < 0 or cv - half < 0 or cu + half >= sub.shape[1] or \
                 cv + half >= sub.shape[0]:
@@ -367,6 +377,8 @@ class SphereDetector(Detector):
             if got is not None:
                 at, size = got
         radius0 = math.sqrt(max(size ** 2 - 4.0 * sigma0 ** 2, 0.25 * size ** 2))
+        if radius0 < hint / self.RADIUS_HINT_RATIO:
+            radius0 = hint
         fit = None
         if start is not None and np.hypot(*(centroid - start[0])) < self.WARM_START_PX:
             fit = fit_shaded_sphere(patch, u0, v0, centroid + start[1], start[2], sigma0,
@@ -378,9 +390,10 @@ class SphereDetector(Detector):
             cold = fit_shaded_sphere(patch, u0, v0, at, radius0, sigma0, scene=behind)
             if fit is None or not fit.ok or (cold.ok and cold.rms < fit.rms):
                 fit = cold
-        if not fit.ok or np.hypot(*(fit.uv - centroid)) > max(1.0, cand.radius):
+        if not fit.ok or np.hypot(*(fit.uv - centroid)) > max(1.0, cand.radius, hint):
             self._fit_start = None
             return None
+        self._radii.append(fit.radius)
         self._fit_start = (centroid, fit.uv - centroid, fit.radius, fit.sigma, fit.shading,
                            fit.rms)
         return fit.uv
