@@ -172,16 +172,10 @@ COLD_STARTS = ((0.0, 0.0, 1.0), (1.0, 0.0, 0.3), (-1.0, 0.0, 0.3), (0.0, 1.0, 0.
 #: time.  (Ranking the starts by a linear solve at the start's geometry, cheaper still,
 #: chose the wrong basin in one frame in ten.)
 COLD_RACE_ITERATIONS = 6
-#: Each light direction starts at these multiples of the given radius too, and the best
-#: ``COLD_FINALISTS`` of all go on.  The moments' radius under-states a ball lit from one
-#: side (the weight sits on the lit part), and from it the fit can settle on a smaller ball
-#: shifted towards the light: on the simulator's lamp-lit cluttered cell, cold fits more than
-#: 0.5 px off fell from 348 to 65 of 1355 with both radii and four finalists (98 starting at
-#: 1.5 x alone; two finalists kept a wrong basin that was ahead after six iterations).  On 900
-#: lit balls over a dark ground the errors are unchanged (99th percentile 0.13 px); a cold fit
-#: costs twice as much (36-46 ms against 18-21 ms, side by side) - once per camera and place,
-#: the dwell's later fits being warm.
-COLD_RADII = (1.0, 1.5)
+#: Four of the six go on, not two: on the simulator's lamp-lit cluttered cell, a start that
+#: ended in the right basin was still behind after six iterations in some frames (cold fits
+#: more than 0.5 px off: 261 of 1355 against 292), for a quarter more time per cold fit;
+#: on 900 lit balls over a dark ground nothing changed (99th percentile 0.127 px).
 COLD_FINALISTS = 4
 
 
@@ -193,8 +187,8 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
     ``patch`` (h, w) background-level image around the ball, its top-left pixel at (u0, v0)
     (OpenCV convention: integer coordinates are pixel centres); ``uv0`` (2,), ``radius0`` and
     ``sigma0`` the start.  ``shading0`` (p0..p3) is a warm start (the previous frame's); without
-    it the :data:`COLD_STARTS` at each of the :data:`COLD_RADII` race and the best finish
-    (:data:`COLD_RACE_ITERATIONS`, :data:`COLD_FINALISTS`).  The
+    it the :data:`COLD_STARTS` race and the best finish (:data:`COLD_RACE_ITERATIONS`,
+    :data:`COLD_FINALISTS`).  The
     radius is bounded to [radius0 / 2, 2 radius0].  Converged when a step moves the centre
     and radius by less than ``tolerance`` px.
 
@@ -227,13 +221,8 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
                                     max_iterations, tolerance)
     else:
         race = max(1, min(COLD_RACE_ITERATIONS, max_iterations))
-        runs = []
-        for scale in COLD_RADII:
-            g0 = list(geometry)
-            g0[2] = scale * float(radius0)
-            runs += [_levenberg_marquardt(model, np.r_[g0, 0.4 * top, 0.6 * top * np.asarray(
-                light), occlusion], radius0, top, 1e-3, race, tolerance)
-                for light in COLD_STARTS]
+        runs = [_levenberg_marquardt(model, np.r_[geometry, 0.4 * top, 0.6 * top * np.asarray(
+            light), occlusion], radius0, top, 1e-3, race, tolerance) for light in COLD_STARTS]
         runs.sort(key=lambda r: r[1])
         best = None
         for theta, cost, it, converged, lam in runs[:COLD_FINALISTS]:
