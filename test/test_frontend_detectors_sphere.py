@@ -296,11 +296,12 @@ def test_a_lamp_lit_ball_darker_than_the_scene_on_its_far_side_is_found(rng, cen
     Measured on that crescent alone (the frame minus the scene, clipped at zero) it failed the
     roundness test: here 41 of 100 frames found, half the places being in front of a bright
     box (47 with the centroid).  Weighed again on where the frame differs from the scene
-    either way, it is the whole disc: 94 and 100 found.  The shaded centre is then right too
-    (median 0.05 px); the centroid is pulled towards the lamp (1.8 px).  A small ball's
-    crescent under-states its size, and a fit started there took a smaller ball towards the
-    lamp (radius 2.3 px: 79 found, up to 2.2 px off); started at the size of the camera's
-    recent fits, 99 found, within 0.4 px (and 100 of the larger ball's).
+    either way it is the whole disc: 94 found (100 with the centroid, pulled towards the lamp
+    by 1.8 px).  The crescent under-states the ball's size too, and a fit started there can
+    take a smaller ball towards the lamp; started no smaller than the camera's recent fits,
+    100 found, median 0.05 px off, and of a 2.3 px ball 99, median 0.09 px, within 0.4 px
+    (79 found and up to 2.2 px off without that start).  The centre's noise grows as the
+    ball's image shrinks, so the median's bound is 0.4 px / radius.
     """
     scene = _cluttered_scene(rng)
     spots, per = _dwells(rng, 14, 10)
@@ -327,6 +328,6 @@ def test_a_lamp_lit_ball_darker_than_the_scene_on_its_far_side_is_found(rng, cen
                 errors.append(e)
     assert found > 0.9 * seen and wrong == 0, (found, wrong, seen)
     if centre == 'shaded':
-        assert np.median(errors) < 0.2 and max(errors) < 0.5, errors
+        assert np.median(errors) < 0.4 / radius and max(errors) < 0.5, errors
     else:
         assert np.median(errors) > 0.3, errors        # the centroid's light bias

@@ -63,10 +63,11 @@ def test_two_calibrators_share_a_cell_and_a_recording(ros_env, client, tmp_path)
         # The recording has only 20 places: a replay that starts before discovery is done
         # loses the first ones (4 of them, one second at 4 x, on a loaded machine), and the
         # never-worse judgement of the rest can then refuse the solve that would add a camera.
-        # So the nodes' subscriptions must be seen, and the replay gets 3 s to find them.
+        # The replay waits until the subscriptions it sees have matched; both nodes' must be
+        # in the graph by then (it starts as soon as one node's have matched).
         for topic in [f'/{c}/image_raw/compressed' for cams in GROUPS.values() for c in cams]:
             wait_until(lambda: client.node.count_subscribers(topic), 30, f'a reader of {topic}')
-        replay = start_replay(env, bag, RATE, tmp_path / 'replay.log', delay=3.0)
+        replay = start_replay(env, bag, RATE, tmp_path / 'replay.log')
         procs.append(replay)
         replay.p.wait(timeout=DURATION / RATE + 60.0)
         assert replay.p.returncode == 0, replay.log()

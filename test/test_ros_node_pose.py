@@ -88,9 +88,9 @@ def test_board_with_pose_input_live_equals_offline(ros_env, client, board_pose_b
     diag, _ = client.record(DiagnosticArray, '/diagnostics', 10)
     procs = []
     try:
-        # Every dwell must reach the node: give discovery 3 s before the first message.
+        # Every dwell must reach the node: the replay waits until the node has matched.
         replay_and_calibrate(client, ros_env, params, bag, tmp_path, 12.0, 1.0, procs, diag,
-                             info, delay=3.0)
+                             info)
     finally:
         for p in procs:
             p.kill()
@@ -135,7 +135,7 @@ def test_given_intrinsics_from_the_drivers_camera_info(ros_env, client, tmp_path
     procs = []
     try:
         node, _ = replay_and_calibrate(client, ros_env, params, bag, tmp_path, 9.0, 1.0, procs,
-                                       diag, info, delay=3.0)
+                                       diag, info)
         log = node.log()
     finally:
         for p in procs:

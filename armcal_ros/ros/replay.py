@@ -133,8 +133,8 @@ def replay(node, bag, rate=1.0, loop=False, topics=None, reliable=True, depth=10
         t_wait = time.monotonic()
         stats.matched = wait_for_subscribers(node, pubs, discovery_timeout, stop)
         stats.discovery_s = time.monotonic() - t_wait
-        unmatched = {t: node.count_subscribers(t) - n for t, n in stats.matched.items()
-                     if node.count_subscribers(t) > n}
+        shown = {t: node.count_subscribers(t) for t in stats.matched}
+        unmatched = {t: shown[t] - n for t, n in stats.matched.items() if shown[t] > n}
         if log and not stop.is_set() and (unmatched or not sum(stats.matched.values())):
             log(f'after {stats.discovery_s:.1f} s of discovery '
                 + (f'subscriptions have not matched on {unmatched} (incompatible QoS?)'

@@ -228,12 +228,12 @@ def refused_start(env, params, log_path):
 
 
 def replay_and_calibrate(client, env, params, bag, log_dir, duration, rate, procs, diag,
-                         info, delay=0.5):
+                         info, delay=5.0):
     """
     Start the node, replay ``bag`` into it and call ~/calibrate once its solve has ended.
 
     The node runs with ``params``; every camera's CameraInfo in ``info`` (the recorder lists)
-    is awaited after the call.  The replay waits ``delay`` seconds for discovery first.  The
+    is awaited after the call.  The replay waits for discovery, ``delay`` seconds at most.  The
     processes go into ``procs`` (the caller kills them).
     Returns (node, monotonic time of the call).
     """

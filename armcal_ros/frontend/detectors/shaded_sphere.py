@@ -174,7 +174,7 @@ COLD_STARTS = ((0.0, 0.0, 1.0), (1.0, 0.0, 0.3), (-1.0, 0.0, 0.3), (0.0, 1.0, 0.
 COLD_RACE_ITERATIONS = 6
 #: Four of the six go on, not two: on the simulator's lamp-lit cluttered cell, a start that
 #: ended in the right basin was still behind after six iterations in some frames (cold fits
-#: more than 0.5 px off: 261 of 1355 against 292), for a quarter more time per cold fit;
+#: more than 0.5 px off: 261 of 1355 against 292), for about a third more time a cold fit;
 #: on 900 lit balls over a dark ground nothing changed (99th percentile 0.127 px).
 COLD_FINALISTS = 4
 

@@ -102,7 +102,7 @@ class SphereDetector(Detector):
     where lit - a crescent, which fails the roundness test - so a component that fails steps
     3-4 is weighed again on where the frame differs from the scene either way, |frame -
     scene|, over the component grown by two pixels: the whole disc (measured on the
-    simulator's lamp-lit cluttered cell, still frames found went from 70 % to 91 %, and those
+    simulator's lamp-lit cluttered cell, still frames found went from 64 % to 91 %, and those
     taken elsewhere from 42 to 16 of 1098; with the shaded fit started at the size of the
     camera's recent fits, ``RADIUS_HINT_FITS``, 93 % and 11).  A due
     image is kept only if the marker was not found in it or has moved since the last kept one
@@ -125,9 +125,9 @@ class SphereDetector(Detector):
     WARM_START_PX = 1.0
     #: A warm-started fit whose residual exceeds the last fit's this many times is redone
     #: from the cold starts (the better of the two kept).  Not the noise's own spread (an RMS
-    #: ratio of 1.2 over a 13 x 13 patch): a ball that is settling after a stop changes its
-    #: residual by more than that from frame to frame, and refitting those frames cold made
-    #: the lamp-lit demo bag's front end 2.3 times as dear (measured 2026-12-04).
+    #: ratio of 1.2 over a 13 x 13 patch): with that, the lamp-lit demo bag's front end took
+    #: 78 s instead of 46 s (2026-12-04, both then racing a second start radius) for no
+    #: measurable gain on the lit cluttered cell.
     REFIT_RMS = 2.0
 
     #: A cold fit starts no smaller than the median radius of the camera's last
@@ -197,7 +197,7 @@ class SphereDetector(Detector):
         self.last_status = 'none'
 
     def reset(self):
-        """Forget the tracked position (the static scene is the camera's and is kept)."""
+        """Forget the tracked position (the static scene and the ball's size are kept)."""
         self.last_uv = None
         self.last_radius = None
         self._fit_start = None
@@ -277,13 +277,11 @@ class SphereDetector(Detector):
 
     def _detect_region(self, gray, x0, y0, x1, y1, white, prefer=None):
         sub = raw = np.ascontiguousarray(gray[y0:y1, x0:x1])
-        scene = mag = None
+        scene = None
         if self._scene_now is not None:
             scene = np.ascontiguousarray(self._scene_now[y0:y1, x0:x1])
             sub = cv2.subtract(sub, scene) if sub.dtype in (np.uint8, np.uint16) else \
                 np.clip(sub - scene, 0, None)
-            mag = cv2.absdiff(raw, scene) if sub.dtype in (np.uint8, np.uint16) else \
-                np.abs(raw - scene)
         bg, noise = self._background(sub)
         threshold = bg + max(self.k_sigma * noise * self._blur_noise_gain,
                              self.min_contrast * white)
@@ -310,7 +308,7 @@ class SphereDetector(Detector):
         image_edges = (x0 == 0, y0 == 0, x1 == gray.shape[1], y1 == gray.shape[0])
         candidates = []
         for label in order:
-            cand = self._measure(sub, labels, stats[label], label, bg, image_edges, mag)
+            cand = self._measure(sub, labels, stats[label], label, bg, image_edges, raw, scene)
             if cand is not None:
                 candidates.append(cand)
         if not candidates:
@@ -389,6 +387,8 @@ class SphereDetector(Detector):
             cold = fit_shaded_sphere(patch, u0, v0, at, radius0, sigma0, scene=behind)
             if fit is None or not fit.ok or (cold.ok and cold.rms < fit.rms):
                 fit = cold
+        # The fit may lie up to a radius from the blob's centroid - the ball's recent radius
+        # where the blob is a crescent, whose own radius under-states it.
         if not fit.ok or np.hypot(*(fit.uv - centroid)) > max(1.0, cand.radius, hint):
             self._fit_start = None
             return None
@@ -448,29 +448,35 @@ class SphereDetector(Detector):
         noise = 1.4826 * _median(np.ascontiguousarray(diff)) / math.sqrt(2.0)
         return level, noise
 
-    def _measure(self, sub, labels, stat, label, bg, image_edges, mag=None):
+    def _measure(self, sub, labels, stat, label, bg, image_edges, raw=None, scene=None):
         bx, by, bw, bh = (int(s) for s in stat[:4])
         hs, ws = sub.shape
         touches = (bx == 0, by == 0, bx + bw == ws, by + bh == hs)
         if any(t and e for t, e in zip(touches, image_edges)):
             return None            # cut by the image border: centroid biased
-        cand = self._weigh(sub, labels, stat, label, bg, touches, 1)
-        if cand is None and mag is not None:
+        cand = self._weigh(lambda r, c: sub[r, c], labels, stat, label, bg, touches, 1)
+        if cand is None and scene is not None:
             # A lit ball darker than the scene on its far side: a crescent above the scene,
             # the whole disc in |frame - scene| (class docstring).  Only then: on a disc that
             # stands out anyway, the wider |difference| adds noise (1.5 x the centroid's error
             # on the simulator's UR5 cell) and nothing else.
-            cand = self._weigh(mag, labels, stat, label, bg, touches, 2)
+            cand = self._weigh(lambda r, c: cv2.absdiff(raw[r, c], scene[r, c]), labels, stat,
+                               label, bg, touches, 2)
         return cand
 
-    def _weigh(self, sub, labels, stat, label, bg, touches, grow):
-        """Measure component ``label`` on ``sub``, grown by ``grow`` px (steps 3-4), or None."""
+    def _weigh(self, region, labels, stat, label, bg, touches, grow):
+        """
+        Measure component ``label`` grown by ``grow`` px (steps 3-4); return it or None.
+
+        ``region(rows, cols)`` returns the image it is weighed on over those slices (computed
+        there only: the |frame - scene| fallback touches a few dozen pixels, not the frame).
+        """
         bx, by, bw, bh = (int(s) for s in stat[:4])
-        hs, ws = sub.shape
+        hs, ws = labels.shape
         ring = self._margin + 1 + grow
         rx0, ry0 = max(0, bx - ring), max(0, by - ring)
         rx1, ry1 = min(ws, bx + bw + ring), min(hs, by + bh + ring)
-        patch = sub[ry0:ry1, rx0:rx1].astype(np.float32)
+        patch = region(slice(ry0, ry1), slice(rx0, rx1)).astype(np.float32)
         comp = (labels[ry0:ry1, rx0:rx1] == label).view(np.uint8)
         grown = cv2.dilate(comp, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
         outside = cv2.dilate(grown, np.ones((5, 5), np.uint8)) == 0
