@@ -19,6 +19,7 @@ docs/ARCHITECTURE.md, "When a camera moves", has the flow and the reasons for th
 
 import json
 import os
+from collections import deque
 from dataclasses import asdict, dataclass, field
 from typing import Dict, List, Optional
 
@@ -36,6 +37,10 @@ REFERENCE_SAMPLES = 300
 #: Views of a recalibrated camera after which its change is no longer re-measured: the size's
 #: precision then no longer limits anything (a few hundredths of a degree).
 SIZING_VIEWS = 200
+#: New views whose light-shift errors (:meth:`ChangeTracker._as_solved`) size what the pooled
+#: shift adds to a new view's noise: 20 views' 2-D errors give the variance within about a
+#: quarter (40 degrees of freedom), and a region newly visited shows within a few views.
+SHIFT_ERROR_VIEWS = 20
 
 
 @dataclass
@@ -111,6 +116,8 @@ class ChangeTracker:
         #: (core.light_pooling.PooledShift): a new view with an intensity centroid is tested
         #: at that centroid plus the shift at its place, as the solve saw its views.
         self.light_shifts: Dict[str, object] = {}
+        #: camera -> the latest new views' light-shift errors (own shift less pooled, px)
+        self._shift_errors: Dict[str, deque] = {}
 
     # -- the predictor ---------------------------------------------------------------------
     def build_monitor(self, calibration, arrays, arm_sigma,
@@ -155,27 +162,44 @@ class ChangeTracker:
         """Test one new sample; return the event if a change is declared."""
         if self.monitor is None or sample.reference_points is not None:
             return None
-        uvs = {n: self._as_solved(n, o, sample.point_nominal)
-               for n, o in sample.observations.items()}
+        uvs, extra = {}, {}
+        for n, o in sample.observations.items():
+            uvs[n], extra[n] = self._as_solved(n, o, sample.point_nominal)
         stamps = [o.stamp_ns for o in sample.observations.values() if o.stamp_ns]
         stamp = min(stamps) if stamps else sample.stamp_ns
-        return self.monitor.observe(sample.point_nominal, uvs, stamp)
+        return self.monitor.observe(sample.point_nominal, uvs, stamp, extra)
 
     def _as_solved(self, camera, observation, point):
         """
-        Return one view's image point as the solve takes it (``sphere_centre`` aside).
+        Return (uv (2,), variance): one view's image point as the solve takes it, and its noise.
 
-        With ``shaded_pooled``, the centroid plus the camera's pooled light shift at
-        ``point``; otherwise the view's own centre.  A fitted centre carries the fit's own
-        noise and its errors where the ball is half in shadow; the calibration was solved on
-        pooled centroids, so the test compares those (measured on a lamp-lit desk-4cam
-        recording, 180 s: three false changes on fitted centres, one on pooled ones).
+        With ``shaded_pooled``, the centroid plus the camera's pooled light shift f at
+        ``point``; otherwise the view's own centre (variance 0).  A fitted centre carries the
+        fit's own noise and its errors where the ball is half in shadow; the calibration was
+        solved on pooled centroids, so the test compares those (measured on a lamp-lit
+        desk-4cam recording, 180 s: three false changes on fitted centres, one on pooled ones).
+
+        The pooled shift is known well where it was pooled, and worse at a place the arm
+        visits for the first time, where the smooth extrapolates.  What it adds to a new
+        view's noise is measured on the new views themselves: each brings its own shift d
+        (fitted centre less centroid), and e = d - f(X) has E e^2 = s_d^2 + (f's error)^2 per
+        axis, s_d^2 the d's own noise (the pooling's, ``noise_var``).  So the variance added
+        is the mean e^2 over the latest :data:`SHIFT_ERROR_VIEWS` views (this one included)
+        less s_d^2.  Both centres of a view move together when the camera moves, so e, and
+        what it adds, does not grow with a knock or a refocus: the test keeps its power for
+        those while a shift extrapolated by a tenth of a pixel is no longer a change (a
+        lamp-lit desk-4cam recording, 180 s: two false changes before, none with it;
+        docs/ARCHITECTURE.md, "When a camera moves").
         """
         pooled = self.light_shifts.get(camera)
         if observation.centroid_uv is None or pooled is None or pooled.status != 'ok' or \
                 point is None:
-            return observation.uv[0]
-        return observation.centroid_uv[0] + pooled.at(np.asarray(point, float)[None])[0]
+            return observation.uv[0], 0.0
+        f = pooled.at(np.asarray(point, float)[None])[0]
+        errors = self._shift_errors.setdefault(camera, deque(maxlen=SHIFT_ERROR_VIEWS))
+        errors.append(observation.uv[0] - observation.centroid_uv[0] - f)
+        own = pooled.noise_var if np.isfinite(pooled.noise_var) else 0.0
+        return observation.centroid_uv[0] + f, max(0.0, float(np.mean(np.square(errors))) - own)
 
     # -- events ----------------------------------------------------------------------------
     def declare(self, event: ChangeEvent, store, calibration) -> ChangeRecord:

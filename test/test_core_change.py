@@ -179,6 +179,65 @@ def test_agreement_without_a_joint_covariance_is_the_fusions_chi_square():
             assert got[1] == f.dof
 
 
+def test_a_views_added_noise_widens_its_own_prediction_and_weakens_its_vote():
+    """
+    ``extra`` on the tested camera adds exactly that to S; on another camera it weakens that
+    camera's part in the fused point, and without bound it is the same as leaving it out.
+    """
+    cams, _, measured, uvs = _stream(30, 9)
+    model = _model(cams)
+    i = next(k for k, o in enumerate(uvs) if len(o) == 3)
+    a, b, c = (cam.name for cam in cams)
+    r0, S0, _ = innovation(model, measured[i], uvs[i], a)
+    r1, S1, _ = innovation(model, measured[i], uvs[i], a, extra={a: 0.7})
+    assert np.allclose(r1, r0) and np.allclose(S1 - S0, 0.7 * np.eye(2), atol=1e-12)
+    _, S2, _ = innovation(model, measured[i], uvs[i], a, extra={b: 0.5})
+    assert np.trace(S2) > np.trace(S0) + 1e-9
+    r3, S3, d3 = innovation(model, measured[i], uvs[i], a, extra={b: 1e12})
+    rb, Sb, db = innovation(model, measured[i], {n: u for n, u in uvs[i].items() if n != b}, a)
+    assert np.allclose(r3, rb, atol=1e-6) and np.allclose(S3, Sb, rtol=1e-6)
+    # The fusion's chi^2 and the agreement weigh the camera's view the same way.
+    f = fuse(model, measured[i], uvs[i], extra={c: 1e12})
+    g = fuse(model, measured[i], {n: u for n, u in uvs[i].items() if n != c})
+    assert f.chi2 == pytest.approx(g.chi2, rel=1e-6)
+    assert agreement(model, measured[i], uvs[i], extra={c: 1e12})[0] == pytest.approx(
+        g.chi2, rel=1e-6)
+
+
+def test_a_view_known_to_be_off_by_its_added_noise_raises_no_alarm_but_a_knock_still_does():
+    """
+    A camera's views offset by 1 px from some time on (a light correction carried to a place
+    it was not measured at, 3 times the image noise) climb the CUSUM to an alarm; given that
+    offset as their added noise (``extra``, 1 px^2) they do not, while a 1 degree knock of
+    the same camera, with the same added noise, is still found within a few samples.
+    """
+    cams, X, measured, uvs = _stream(300, 3)
+    model = _model(cams)
+    name = cams[1].name
+    knocked = _knock(cams[1], 1.0, np.random.default_rng(4))
+    scales = reference_scales(model, measured[:100], uvs[:100])
+
+    def run(extra, knock_at=None):
+        mon = ChangeMonitor(model, scales)
+        for k in range(100, len(X)):
+            obs = dict(uvs[k])
+            if name in obs:
+                if knock_at is not None and k >= knock_at:
+                    obs[name] = knocked.project(X[k:k + 1])[0] + \
+                        np.random.default_rng(k).normal(0, PIXEL_SIGMA, 2)
+                obs[name] = obs[name] + np.array([1.0, 0.0])
+            event = mon.observe(measured[k], obs, k, {name: extra} if extra else None)
+            if event is not None:
+                return k, event
+        return None, None
+    k, event = run(0.0)
+    assert event is not None
+    assert run(1.0) == (None, None)
+    k, event = run(1.0, knock_at=200)
+    assert event is not None and event.kind == 'camera' and event.camera == name
+    assert 200 <= k < 200 + 15
+
+
 def test_one_place_seen_in_several_samples_counts_once():
     """Three samples of one pause with one bad view do not pass for three bad views."""
     cams, _, measured, uvs = _stream(200, 9)

@@ -162,9 +162,46 @@ def test_a_lit_balls_new_view_is_tested_as_the_solve_took_its_views():
     tracker = ChangeTracker()
     tracker.light_shifts = {'cam1': pool_light_shift(points, np.tile([0.4, -0.5], (60, 1)))}
     fitted = Observation(uv=[[100.3, 200.2]], ids=[0], centroid_uv=[[100.0, 200.0]])
-    got = tracker._as_solved('cam1', fitted, points[0])
+    got, _ = tracker._as_solved('cam1', fitted, points[0])
     assert np.allclose(got, [100.4, 199.5], atol=1e-6)
-    # No pooled shift for the camera, or a plain centroid: the view's own centre.
-    assert np.allclose(tracker._as_solved('cam2', fitted, points[0]), [100.3, 200.2])
+    # No pooled shift for the camera, or a plain centroid: the view's own centre, nothing added.
+    assert np.allclose(tracker._as_solved('cam2', fitted, points[0])[0], [100.3, 200.2])
+    assert tracker._as_solved('cam2', fitted, points[0])[1] == 0.0
     plain = Observation(uv=[[50.0, 60.0]], ids=[0])
-    assert np.allclose(tracker._as_solved('cam1', plain, points[0]), [50.0, 60.0])
+    assert np.allclose(tracker._as_solved('cam1', plain, points[0])[0], [50.0, 60.0])
+
+
+def test_a_pooled_shift_carried_to_a_new_place_adds_what_it_is_off_by_there():
+    """
+    A new view's noise gains the pooled shift's error measured on the new views themselves.
+
+    The shift pooled over one region (a constant 0.4 px, each view's own shift with 0.01 px of
+    noise) is right at views of that region, which add next to nothing; where the true shift
+    is 0.2 px larger the views' own shifts show it, and the variance added approaches 0.2^2
+    per axis over the window.  A knock moves a view's centroid and fitted centre together:
+    what is added stays the same.
+    """
+    from armcal_ros.change_tracking import ChangeTracker, SHIFT_ERROR_VIEWS
+    from armcal_ros.core.light_pooling import pool_light_shift
+    rng = np.random.default_rng(5)
+    points = rng.uniform([-0.3, -0.3, 0.2], [0.0, 0.3, 0.7], (80, 3))
+    own = np.array([0.4, -0.5]) + rng.normal(0, 0.01, (80, 2))
+    tracker = ChangeTracker()
+    tracker.light_shifts = {'cam1': pool_light_shift(points, own)}
+    assert tracker.light_shifts['cam1'].noise_var == pytest.approx(1e-4, rel=0.4)
+
+    def view(shift, knock=0.0):
+        c = rng.uniform(100, 500, 2) + knock
+        d = np.asarray(shift) + rng.normal(0, 0.01, 2)
+        return Observation(uv=[c + d], ids=[0], centroid_uv=[c])
+    for _ in range(SHIFT_ERROR_VIEWS):
+        _, added = tracker._as_solved('cam1', view([0.4, -0.5]), points[0])
+    assert added < 0.01 ** 2
+    far = np.array([0.25, 0.0, 0.45])
+    for _ in range(SHIFT_ERROR_VIEWS):
+        _, added = tracker._as_solved('cam1', view([0.6, -0.5]), far)
+    assert added == pytest.approx(0.5 * 0.2 ** 2, rel=0.2)     # per axis: 0.2 px on one of two
+    rng = np.random.default_rng(6)
+    for _ in range(SHIFT_ERROR_VIEWS):
+        _, knocked = tracker._as_solved('cam1', view([0.6, -0.5], knock=7.0), far)
+    assert knocked == pytest.approx(added, rel=0.2)

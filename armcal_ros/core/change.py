@@ -56,14 +56,15 @@ if the arm and every camera agree on them (the fusion's whitened residual sum wi
 quantile at :data:`CONFIRM_ALPHA`), the climb was a disagreement too weak to be anything (a
 region the calibration describes a little worse, views that are correlated in space) and that
 camera's CUSUM starts again.  Otherwise they are explained in turn:
-- a camera moved if, leaving it out, the others and the arm agree, and leaving out another does
-  not (of several that qualify, the one that leaves the best agreement);
+- a camera moved if, leaving it out, the others and the arm agree, and leaving out any other
+  does not;
 - the arm or the marker changed if no single camera explains it but the cameras agree with each
   other without the arm (every camera sees the points move the same way: a new tool, a re-homed
   joint);
-- when every single exclusion leaves agreement (two cameras and an arm known to millimetres
-  predict each other loosely, view by view), each camera is refitted as one rigid change
-  across its views, and if exactly one refit explains them it is that camera;
+- when more than one exclusion leaves agreement (two cameras and an arm known to millimetres
+  predict each other loosely, view by view; a weak disagreement spread over several cameras),
+  each of those cameras is refitted as one rigid change across its views, and if exactly one
+  refit explains them it is that camera;
 - otherwise the change is reported as unexplained, against the camera whose window fired.
 An unexplained climb is judged again at the next view while there are too few views to tell
 (fewer than CONFIRM_OBSERVATIONS + ONSET_SLACK, or two cameras that both explain them, up to
@@ -289,15 +290,16 @@ def _project(model: PredictionModel, name, X):
     return project_with_jacobians(cam.intrinsics(), cam.dist, cam.rotation, cam.translation, X)
 
 
-def _predict_batch(model: PredictionModel, name, X, scale=1.0, parameters=True):
+def _predict_batch(model: PredictionModel, name, X, scale=1.0, parameters=True, extra=0.0):
     """
     Return :func:`predict` for many points X (N, 3): uv, d uv / dX, Sigma (N, 2, 2), depth.
 
-    Without ``parameters`` Sigma is the image noise alone.
+    Without ``parameters`` Sigma is the image noise alone; ``extra`` (scalar or (N,)) is a
+    variance per axis (px^2) added to the image noise of each point's view (:class:`View`).
     """
     pj = _project(model, name, X)
     Sigma = np.zeros((X.shape[0], 2, 2))
-    Sigma[:, 0, 0] = Sigma[:, 1, 1] = scale * model.sigma_px[name] ** 2
+    Sigma[:, 0, 0] = Sigma[:, 1, 1] = scale * model.sigma_px[name] ** 2 + extra
     got = model.parameter_covariance.get(name) if parameters else None
     if got is not None:
         names, C = got
@@ -328,13 +330,14 @@ class Fusion:
 
 
 def fuse(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=None,
-         use_arm=True) -> Optional[Fusion]:
+         use_arm=True, extra=None) -> Optional[Fusion]:
     """
     Fuse the arm's point ``X0`` (3,) with the cameras' points ``uvs`` (name -> (2,)).
 
     Minimises |X - X0|^2 / s_arm^2 (if ``use_arm``) + sum_o r_o^T Sigma_o^-1 r_o, r_o = uv_o -
     pi_o(X), Sigma_o from :func:`predict`, by Gauss-Newton; ``scales`` maps cameras to k_o^2
-    (default 1).  The chi^2 is the whitened
+    (default 1), ``extra`` cameras to a variance added to their image noise (:class:`View`).
+    The chi^2 is the whitened
     residual sum at the solution, with 2 m + 3 - 3 degrees of freedom (m cameras) with the arm,
     2 m - 3 without.  None when the cameras alone cannot fix the point (fewer than two).
     """
@@ -344,14 +347,14 @@ def fuse(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=None,
         return None
     X, cov, chi, ok = _fuse_batch(
         model, X0[None], {n: np.asarray(uvs[n], float).reshape(1, 2) for n in names},
-        {n: np.ones(1, bool) for n in names}, scales, use_arm)
+        {n: np.ones(1, bool) for n in names}, scales, use_arm, extra=_batch_extra(extra, 1))
     if not ok[0]:
         return None
     return Fusion(X[0], cov[0], float(chi[0]), 2 * len(names) - (0 if use_arm else 3))
 
 
 def agreement(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=None,
-              use_arm=True):
+              use_arm=True, extra=None):
     """
     Return (chi^2, dof) of the arm and the cameras ``uvs`` agreeing on one point, or None.
 
@@ -366,11 +369,12 @@ def agreement(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=Non
     chi^2 = e^T Cov(e)^+ e over its rank (2 m with the arm, 2 m - 3 without).  As in
     :func:`_innovation_batch`, the calibration's uncertainty counts with its correlations, so
     the cameras' common freedom (the frame the arm fixes only to its own accuracy) is not
-    mistaken for room to disagree.
+    mistaken for room to disagree.  ``extra``: as for :func:`fuse`.
     """
     joint = model.joint_covariance
+    extra = extra or {}
     if joint is None:
-        f = fuse(model, X0, uvs, scales, use_arm)
+        f = fuse(model, X0, uvs, scales, use_arm, extra)
         return None if f is None else (f.chi2, f.dof)
     X0 = np.asarray(X0, float).reshape(3)
     names = [n for n in uvs if n in model.cameras]
@@ -379,7 +383,7 @@ def agreement(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=Non
     X, cov, _, ok = _fuse_batch(model, X0[None],
                                 {n: np.asarray(uvs[n], float).reshape(1, 2) for n in names},
                                 {n: np.ones(1, bool) for n in names}, scales, use_arm,
-                                parameters=False)
+                                parameters=False, extra=_batch_extra(extra, 1))
     if not ok[0]:
         return None
     cams, C = joint
@@ -392,7 +396,8 @@ def agreement(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=Non
         sl = slice(2 * j, 2 * j + 2)
         e[sl] = np.asarray(uvs[n], float).reshape(2) - pj.uv[0]
         F[sl] = pj.d_point[0]
-        noise[sl] = (1.0 if scales is None else scales.get(n, 1.0)) * model.sigma_px[n] ** 2
+        noise[sl] = (1.0 if scales is None else scales.get(n, 1.0)) * model.sigma_px[n] ** 2 \
+            + extra.get(n, 0.0)
         if n in index:
             G[sl, index[n][1]] = _parameter_jacobian(pj, index[n][0])[0]
     if use_arm:
@@ -409,10 +414,17 @@ def agreement(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=Non
     return float(np.sum(proj ** 2 / w[keep])), int(np.sum(keep))
 
 
+def _batch_extra(extra, n):
+    """Return a view's added variances (name -> px^2) as arrays for a batch of ``n`` points."""
+    return {k: np.full(n, float(v)) for k, v in (extra or {}).items()}
+
+
 def _fuse_batch(model: PredictionModel, X0, uv, seen, scales=None, use_arm=True,
-                parameters=True):
+                parameters=True, extra=None):
     """
     :func:`fuse` for N points at once: X0 (N, 3), per camera uv (N, 2) and seen (N,) bool.
+
+    ``extra`` maps cameras to (N,) variances added to their image noise (:class:`View`).
 
     Returns (X (N, 3), H^-1 (N, 3, 3), chi^2 (N,), ok (N,)); a point whose information matrix
     is singular or not finite is not ok (its entries are NaN).  Without ``parameters`` the
@@ -436,7 +448,8 @@ def _fuse_batch(model: PredictionModel, X0, uv, seen, scales=None, use_arm=True,
                 if not np.any(m):
                     continue
                 k = 1.0 if scales is None else scales.get(n, 1.0)
-                u, J, Sigma, _ = _predict_batch(model, n, X[m], k, parameters)
+                ex = extra[n][m] if extra and n in extra else 0.0
+                u, J, Sigma, _ = _predict_batch(model, n, X[m], k, parameters, ex)
                 W = _inv2(Sigma)
                 r = uv[n][m] - u
                 JtW = np.einsum('nak,nab->nkb', J, W)
@@ -452,7 +465,7 @@ def _fuse_batch(model: PredictionModel, X0, uv, seen, scales=None, use_arm=True,
     return X, cov, chi, ok
 
 
-def _innovation_batch(model: PredictionModel, left, X0, uv, seen):
+def _innovation_batch(model: PredictionModel, left, X0, uv, seen, extra=None):
     """
     Return camera ``left``'s leave-one-out innovations over N samples: r (N, 2), S (N, 2, 2), d^2.
 
@@ -469,15 +482,18 @@ def _innovation_batch(model: PredictionModel, left, X0, uv, seen):
     The cameras' poses are far better known relative to one another than each on its own (the
     arm fixes the frame only to its own accuracy, and the frame moves them all together): the
     blocks alone would credit every prediction with the frame's uncertainty too.  d^2 is NaN
-    where the fusion is singular or the point is behind the camera.
+    where the fusion is singular or the point is behind the camera.  ``extra`` maps cameras
+    to (N,) variances added to their image noise (:class:`View`).
     """
     joint = model.joint_covariance
+    extra = extra or {}
     others = {n: m for n, m in seen.items() if n != left}
     X, cov, _, ok = _fuse_batch(model, X0, {n: uv[n] for n in others}, others,
-                                parameters=joint is None)
+                                parameters=joint is None, extra=extra)
     N = X0.shape[0]
     with np.errstate(all='ignore'):
-        u, J, Sigma, depth = _predict_batch(model, left, X, parameters=joint is None)
+        u, J, Sigma, depth = _predict_batch(model, left, X, parameters=joint is None,
+                                            extra=extra.get(left, 0.0))
         r = uv[left] - u
         S = Sigma + np.einsum('nak,nkl,nbl->nab', J, cov, J)
         if joint is not None:
@@ -492,39 +508,44 @@ def _innovation_batch(model: PredictionModel, left, X0, uv, seen):
                 if n not in index or not np.any(m):
                     continue
                 pj = _project(model, n, X[m])
-                w = 1.0 / model.sigma_px[n] ** 2
+                # The fusion's weight of camera n at these points: its image noise and
+                # what the views add to it.
+                w = 1.0 / (model.sigma_px[n] ** 2 + (extra[n][m] if n in extra else 0.0))
                 Jt = _parameter_jacobian(pj, index[n][0])
-                g[np.ix_(m, [0, 1], index[n][1])] += w * np.einsum(
-                    'nal,nbl,nbp->nap', JH[m], pj.d_point, Jt)
+                g[np.ix_(m, [0, 1], index[n][1])] += np.einsum(
+                    'n,nal,nbl,nbp->nap', np.broadcast_to(w, (int(np.sum(m)),)), JH[m],
+                    pj.d_point, Jt)
             S = S + np.einsum('nap,pq,nbq->nab', g, np.asarray(C, float), g)
         d2 = np.einsum('na,nab,nb->n', r, _inv2(S), r)
     d2[~ok | ~(depth > 0) | ~np.isfinite(d2)] = np.nan
     return r, S, d2
 
 
-def innovation(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], camera):
+def innovation(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], camera, extra=None):
     """
     Return (r (2,), S (2, 2), d^2) of ``camera``'s observation predicted from the rest.
 
     See the module docstring and :func:`_innovation_batch`; None when the camera is not in the
-    model or not in ``uvs``, or when the rest cannot predict it.
+    model or not in ``uvs``, or when the rest cannot predict it.  ``extra``: as in
+    :class:`View`.
     """
     if camera not in model.cameras or camera not in uvs:
         return None
     names = [n for n in uvs if n in model.cameras]
     uv = {n: np.asarray(uvs[n], float).reshape(1, 2) for n in names}
     r, S, d2 = _innovation_batch(model, camera, np.asarray(X0, float).reshape(1, 3), uv,
-                                 {n: np.ones(1, bool) for n in names})
+                                 {n: np.ones(1, bool) for n in names}, _batch_extra(extra, 1))
     if not np.isfinite(d2[0]):
         return None
     return r[0], S[0], float(d2[0])
 
 
-def statistics(model: PredictionModel, X0, uvs: Dict[str, np.ndarray]) -> Dict[str, float]:
+def statistics(model: PredictionModel, X0, uvs: Dict[str, np.ndarray],
+               extra=None) -> Dict[str, float]:
     """Return d^2 of every modelled camera in ``uvs`` (see :func:`innovation`)."""
     out = {}
     for name in uvs:
-        got = innovation(model, X0, uvs, name)
+        got = innovation(model, X0, uvs, name, extra)
         if got is not None and np.isfinite(got[2]):
             out[name] = got[2]
     return out
@@ -612,11 +633,18 @@ class ChangeEvent:
 
 @dataclass
 class View:
-    """One sample as the monitor sees it: stamp, the arm's point, camera name -> uv."""
+    """
+    One sample as the monitor sees it: stamp, the arm's point, camera name -> uv.
+
+    ``extra`` maps cameras to a variance per axis (px^2) added to that camera's image noise in
+    this view alone: what its point is known to beyond the calibration's image noise (a light
+    correction carried to a place it was not measured at, see change_tracking.py).
+    """
 
     stamp_ns: int
     X0: np.ndarray
     uvs: Dict[str, np.ndarray]
+    extra: Dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -665,23 +693,25 @@ def explain_by_camera_change(model: PredictionModel, camera, seen, scales=None,
     """
     cam0 = model.cameras[camera]
     k2 = 1.0 if scales is None else scales.get(camera, 1.0)
-    pts, uv, covs, used = [], [], [], []
+    pts, uv, covs, used, added = [], [], [], [], []
     for s in seen:
-        f = fuse(model, s.X0, {n: v for n, v in s.uvs.items() if n != camera})
+        f = fuse(model, s.X0, {n: v for n, v in s.uvs.items() if n != camera}, extra=s.extra)
         if f is None:
             continue
         pts.append(f.X)
         covs.append(f.cov)
         uv.append(s.uvs[camera])
         used.append(s.stamp_ns)
+        added.append(s.extra.get(camera, 0.0))
     X, uv, P = np.array(pts).reshape(-1, 3), np.array(uv).reshape(-1, 2), np.array(covs)
+    noise = (model.sigma_px[camera] ** 2 * k2 + np.array(added, float))[:, None, None] * \
+        np.eye(2)
     n = len(X)
 
     def whitened(c, sc):
         intr = np.array([c.fx * sc, c.fy * sc, c.cx, c.cy])
         pj = project_with_jacobians(intr, c.dist, c.rotation, c.translation, X)
-        S = model.sigma_px[camera] ** 2 * k2 * np.eye(2) + pj.d_point @ P @ \
-            np.transpose(pj.d_point, (0, 2, 1))
+        S = noise + pj.d_point @ P @ np.transpose(pj.d_point, (0, 2, 1))
         L = np.linalg.cholesky(np.linalg.inv(S))            # L L^T = S^-1
         Lt = np.transpose(L, (0, 2, 1))
         r = np.einsum('nij,nj->ni', Lt, uv - pj.uv)
@@ -824,8 +854,14 @@ class ChangeMonitor:
         """Return every camera's current k^2."""
         return {n: self.scale(n) for n in self.scales}
 
-    def observe(self, X0, uvs: Dict[str, np.ndarray], stamp_ns: int) -> Optional[ChangeEvent]:
-        """Test one new sample (arm point ``X0``, name -> uv); return an event or None."""
+    def observe(self, X0, uvs: Dict[str, np.ndarray], stamp_ns: int,
+                extra: Dict[str, float] = None) -> Optional[ChangeEvent]:
+        """
+        Test one new sample (arm point ``X0``, name -> uv); return an event or None.
+
+        ``extra``: name -> a variance per axis (px^2) added to that camera's image noise in
+        this sample (:class:`View`).
+        """
         if self.paused or not self.model.cameras:
             return None
         uvs = {n: np.asarray(uv, float).reshape(2) for n, uv in uvs.items()
@@ -833,12 +869,13 @@ class ChangeMonitor:
         if not uvs:
             return None
         X0 = np.asarray(X0, float).reshape(3)
-        seen = View(int(stamp_ns), X0, uvs)
+        extra = {n: float(v) for n, v in (extra or {}).items() if n in uvs and v > 0}
+        seen = View(int(stamp_ns), X0, uvs, extra)
         self.recent.append(seen)
         self.tested += 1
         if self.suspect is not None:
             return self._confirm(seen)
-        stats = statistics(self.model, X0, uvs)
+        stats = statistics(self.model, X0, uvs, extra)
         if self._place is None or np.linalg.norm(X0 - self._place) >= SAME_PLACE:
             self._place, self._place_terms = X0, {}
         fired = None
@@ -953,7 +990,7 @@ class ChangeMonitor:
         total, dof, scales = 0.0, 0, self.current_scales()
         for s in seen:
             uvs = {n: uv for n, uv in s.uvs.items() if n != leave_out}
-            got = agreement(self.model, s.X0, uvs, scales, use_arm=use_arm)
+            got = agreement(self.model, s.X0, uvs, scales, use_arm=use_arm, extra=s.extra)
             if got is None or got[1] <= 0:
                 continue
             total += got[0]
@@ -968,9 +1005,11 @@ class ChangeMonitor:
 
         Nothing (kind None) if the views agree with the calibration as a whole: the chi^2 of
         the arm and every camera together within its quantile at the false-alarm probability.
-        A camera is named only if leaving it out explains the views and leaving out another
-        does not: when every single exclusion explains them, the disagreement is too weak to
-        point anywhere (an arm error a little beyond its model, say) and it is 'unexplained'.
+        A camera is named only if leaving it out explains the views and leaving out any other
+        does not: when several exclusions explain them, the disagreement is too weak to point
+        anywhere (an arm error a little beyond its model, views of several cameras a little
+        off) unless exactly one of those cameras' refits explains it; otherwise it is
+        'unexplained'.
         With one camera there is nothing to compare it with: it is the suspect, and the refit
         decides.
         """
@@ -985,11 +1024,12 @@ class ChangeMonitor:
         testable = {n: evidence[f'without {n}'] for n in cams
                     if np.isfinite(evidence[f'without {n}'])}
         ok = {n: v for n, v in testable.items() if v <= 1.0}
-        if ok and len(ok) < len(testable):
-            return 'camera', min(ok, key=ok.get), evidence
+        if len(ok) == 1 and len(testable) > 1:
+            return 'camera', next(iter(ok)), evidence
         if len(ok) > 1 and len(seen) >= CONFIRM_OBSERVATIONS + ONSET_SLACK:
-            # Every exclusion leaves agreement, view by view (two cameras and an arm known to
-            # millimetres: either camera's view is then predicted loosely from the other).
+            # More than one exclusion leaves agreement, view by view: a disagreement too weak
+            # to point at one camera (two cameras and an arm known to millimetres predict each
+            # other loosely; a few views of several cameras each a little off).
             # A camera that moved is one rigid change across its views: refit each to its
             # views (but the first few, which may precede the change), and if exactly one
             # refit explains them, it is that one.

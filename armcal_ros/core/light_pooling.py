@@ -60,7 +60,9 @@ class PooledShift:
     per axis (px^2: the squared weights of its equivalent kernel times the d's noise),
     ``k`` the neighbourhood chosen (M for one plane or constant through all views),
     ``loo_rms`` its leave-one-out RMS prediction error per axis
-    (px), ``status`` 'ok' or 'too_few' (then ``shift`` is the d's themselves), ``message``.
+    (px), ``status`` 'ok' or 'too_few' (then ``shift`` is the d's themselves), ``message``,
+    ``noise_var`` the d's own noise variance per axis (px^2: the leave-one-out error less the
+    smooth's part of it).
     """
 
     shift: np.ndarray
@@ -74,6 +76,7 @@ class PooledShift:
     points: Optional[np.ndarray] = None
     shifts: Optional[np.ndarray] = None
     degree: Optional[int] = None
+    noise_var: float = float('nan')
 
     def at(self, points) -> np.ndarray:
         """
@@ -213,4 +216,4 @@ def pool_light_shift(points, shifts, noise_var=None) -> PooledShift:
            0: 'one constant'}[degree]
     return PooledShift(fit, kernel_sq * noise_var, k if degree is None else m,
                        float(np.sqrt(err)), 'ok', f'{how} over {m} views', points.copy(),
-                       shifts.copy(), degree)
+                       shifts.copy(), degree, noise_var)
