@@ -331,3 +331,28 @@ def test_a_lamp_lit_ball_darker_than_the_scene_on_its_far_side_is_found(rng, cen
         assert np.median(errors) < 0.4 / radius and max(errors) < 0.5, errors
     else:
         assert np.median(errors) > 0.3, errors        # the centroid's light bias
+
+
+def test_a_smaller_ball_after_a_bigger_one_is_found_again(rng):
+    """
+    The camera's recent fit radii start a cold fit, but never bound it.
+
+    A fit started from a radius far above the ball's fails; if only such starts were tried, no
+    fit of the new ball would ever enter the recent radii and the camera stayed blind for good
+    (a knocked camera of the lamp-lit cluttered cell, whose old scene left large blobs that
+    filled them; here a tool changed to a smaller ball).  From the blob's own size it is found
+    again at once.
+    """
+    scene = _cluttered_scene(rng)
+    det = SphereDetector(centre='shaded')
+    spots, per = _dwells(rng, 16, 10)
+    found = []
+    for k, c in enumerate(spots):
+        radius = 10.0 if k < 8 else 3.0
+        ball, cover = render_lit_ball(c, radius, light=(0.3, -0.8, -0.5))
+        view = ball + (1.0 - cover) * scene
+        for _ in range(per):
+            d = det.detect(quantise(view, rng, noise=2.0))
+            if k >= 8:
+                found.append(bool(d) and np.linalg.norm(d[0].uv - c) < 0.5)
+    assert np.mean(found) > 0.9, np.mean(found)

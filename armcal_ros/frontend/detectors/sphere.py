@@ -375,8 +375,8 @@ class SphereDetector(Detector):
             got = _moments(np.abs(patch), u0, v0)
             if got is not None:
                 at, size = got
-        radius0 = math.sqrt(max(size ** 2 - 4.0 * sigma0 ** 2, 0.25 * size ** 2))
-        radius0 = max(radius0, hint)
+        own = math.sqrt(max(size ** 2 - 4.0 * sigma0 ** 2, 0.25 * size ** 2))
+        radius0 = max(own, hint)
         fit = None
         if start is not None and np.hypot(*(centroid - start[0])) < self.WARM_START_PX:
             fit = fit_shaded_sphere(patch, u0, v0, centroid + start[1], start[2], sigma0,
@@ -389,7 +389,17 @@ class SphereDetector(Detector):
                 fit = cold
         # The fit may lie up to a radius from the blob's centroid - the ball's recent radius
         # where the blob is a crescent, whose own radius under-states it.
-        if not fit.ok or np.hypot(*(fit.uv - centroid)) > max(1.0, cand.radius, hint):
+        reach = max(1.0, cand.radius, hint)
+        if (not fit.ok or np.hypot(*(fit.uv - centroid)) > reach) and radius0 > own:
+            # The recent size is a start, never a bound: fits taken on something else (a
+            # knocked camera's old scene, subtracted, leaves large blobs) can fill the recent
+            # radii, and a start from them then fails on every later ball, so none of its fits
+            # enters them again - the camera fell silent for good after a 0.25 deg knock of
+            # the lamp-lit cluttered cell.  From the blob's own size the ball is found again.
+            again = fit_shaded_sphere(patch, u0, v0, at, own, sigma0, scene=behind)
+            if again.ok:
+                fit = again
+        if not fit.ok or np.hypot(*(fit.uv - centroid)) > reach:
             self._fit_start = None
             return None
         self._radii.append(fit.radius)
