@@ -399,3 +399,28 @@ def test_a_static_spot_taken_for_the_marker_is_not_a_camera_that_moved():
     assert events and all(e.kind != 'camera' for e in events), \
         [(e.kind, e.fit and (e.fit.rotation_deg, e.fit.focal_percent)) for e in events]
     assert any(e.kind == 'disagreement' and e.camera == name for e in events)
+
+
+def test_a_camera_is_not_named_while_another_that_would_explain_it_is_untried(monkeypatch):
+    """
+    Two exclusions each leave agreement; one camera's refit explains its views, the other has
+    too few views to be refitted.  That is no unique explanation: unexplained (and judged
+    again at the next view), not a change of the first - which retired a good camera's data
+    when an arm model's error at a new place was taken for it.
+    """
+    cams, _, measured, uvs = _stream(60, 12)
+    a, b = cams[0].name, cams[1].name
+    model = PredictionModel({c.name: c for c in cams[:2]}, {a: PIXEL_SIGMA, b: PIXEL_SIGMA},
+                            ARM_SIGMA)
+    mon = ChangeMonitor(model, {a: 1.0, b: 1.0})
+    both = [k for k, o in enumerate(uvs) if a in o and b in o][:10]
+    seen = [View(k, measured[k], {n: uvs[k][n] for n in (a, b) if n == a or i < 3})
+            for i, k in enumerate(both)]
+    answers = {None: 2.0, a: 0.5, b: 0.5}
+
+    def agreement_of(seen, leave_out=None, use_arm=True, alpha=None):
+        return answers[leave_out] if use_arm else 5.0
+    monkeypatch.setattr(mon, '_agreement', agreement_of)
+    kind, camera, evidence = mon._attribute(seen, a)
+    assert evidence[f'refit {a}'] <= 1.0 and np.isnan(evidence[f'refit {b}'])
+    assert kind == 'unexplained' and evidence['ambiguous'] == 1.0

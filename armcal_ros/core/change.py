@@ -64,7 +64,7 @@ camera's CUSUM starts again.  Otherwise they are explained in turn:
 - when more than one exclusion leaves agreement (two cameras and an arm known to millimetres
   predict each other loosely, view by view; a weak disagreement spread over several cameras),
   each of those cameras is refitted as one rigid change across its views, and if exactly one
-  refit explains them it is that camera;
+  refit explains them, every other having been refitted (enough views), it is that camera;
 - otherwise the change is reported as unexplained, against the camera whose window fired.
 An unexplained climb is judged again at the next view while there are too few views to tell
 (fewer than CONFIRM_OBSERVATIONS + ONSET_SLACK, or two cameras that both explain them, up to
@@ -1043,9 +1043,12 @@ class ChangeMonitor:
                 if fit is not None and not fit.plausible:
                     evidence[f'refit {n}'] = float('inf')
             explained = [n for n in ok if evidence[f'refit {n}'] <= 1.0]
-            if len(explained) == 1:
+            # A camera with too few views to be refitted is not ruled out: the explanation
+            # is unique only among cameras that were all tried.
+            untried = [n for n in ok if np.isnan(evidence[f'refit {n}'])]
+            if len(explained) == 1 and not untried:
                 return 'camera', explained[0], evidence
-            evidence['ambiguous'] = float(len(explained) > 1)
+            evidence['ambiguous'] = float(len(explained) + len(untried) > 1)
         free = evidence['cameras without the arm']
         if not ok and np.isfinite(free) and free <= 1.0:
             return 'arm', None, evidence
