@@ -112,13 +112,6 @@ CONFIRM_ALPHA = 1e-3
 #: Views beyond CONFIRM_OBSERVATIONS collected before the judgement, so that the change point
 #: can be moved past up to this many old views that happened to start the CUSUM's climb.
 ONSET_SLACK = 2
-#: Views a refit may set aside as bad detections, at most (a fraction of its views): a camera
-#: knocked in front of a learnt static scene gives a few wild detections while the scene is
-#: learnt again (the lamp-lit cluttered cell: three 160-230 px off, then two of 0.6 and 2 px
-#: among views 0.03 px apart, five of eighteen - a quarter was one short), and one of them
-#: decides a chi^2 alone.  A third keeps a burst of bad detections, most of the views,
-#: unexplained; the views kept must still disagree with the old camera.
-MAX_OUTLIER_FRACTION = 1.0 / 3.0
 #: Views a suspect may collect while its latest views still disagree with its old calibration
 #: and no split explains them yet: a climb that began on old views a little off (a region the
 #: calibration describes a little worse) just before a real change leaves too few new views
@@ -673,12 +666,6 @@ class CameraChangeFit:
     old_d2: np.ndarray = None       # each view's whitened residual^2, the old camera
     new_d2: np.ndarray = None       # and the refitted one
     depth_m: float = float('nan')   # the views' median depth in the old camera
-    kept: np.ndarray = None         # per view: False where set aside as a bad detection
-
-    @property
-    def set_aside(self) -> int:
-        """Return the number of views the refit set aside as bad detections."""
-        return 0 if self.kept is None else int(np.sum(~self.kept))
 
     @property
     def plausible(self) -> bool:
@@ -694,8 +681,7 @@ class CameraChangeFit:
 
 
 def explain_by_camera_change(model: PredictionModel, camera, seen, scales=None,
-                             false_alarm=1e-6, iterations=8, fit_focal=True,
-                             set_aside=True) -> CameraChangeFit:
+                             false_alarm=1e-6, iterations=8, fit_focal=True) -> CameraChangeFit:
     """
     Refit ``camera``'s pose and focal length to its views in ``seen``; say if that explains them.
 
@@ -703,10 +689,7 @@ def explain_by_camera_change(model: PredictionModel, camera, seen, scales=None,
     covariance P_i; the residual r_i = uv_i - pi(R(w) , t + dt, s f; X_i) is whitened by
     S_i = k^2 s^2 I + J_i P_i J_i^T, and Gauss-Newton finds (w, dt, s) from the old camera.
     The 2 n - 7 degrees of freedom left judge the fit; without ``fit_focal`` the focal length
-    stays (2 n - 6).  Up to :data:`MAX_OUTLIER_FRACTION` of the views, each beyond the
-    per-view chi^2_2 quantile at ``false_alarm``, are set aside one by one, worst first (and
-    n counts the views kept), while the views kept still disagree with the old camera (none
-    without ``set_aside``).
+    stays (2 n - 6).
     """
     cam0 = model.cameras[camera]
     k2 = 1.0 if scales is None else scales.get(camera, 1.0)
@@ -735,12 +718,10 @@ def explain_by_camera_change(model: PredictionModel, camera, seen, scales=None,
         J = np.concatenate([pj.d_pose, (pj.uv - intr[2:])[:, :, None] / sc], axis=2)
         return r.reshape(-1), np.einsum('nij,njk->nik', Lt, J).reshape(-1, 7)
 
-    def refine(cam, keep):
+    def refine(cam):
         scale = 1.0
-        rows = np.repeat(keep, 2)
         for _ in range(iterations):
             r, J = whitened(cam, scale)
-            r, J = r[rows], J[rows]
             if not fit_focal:
                 J = J[:, :6]
             step = np.linalg.lstsq(J, r, rcond=None)[0]
@@ -754,66 +735,38 @@ def explain_by_camera_change(model: PredictionModel, camera, seen, scales=None,
         return cam, scale, r
 
     r_old, _ = whitened(cam0, 1.0)
-    old_d2 = np.sum(r_old.reshape(-1, 2) ** 2, axis=1)
-
-    def best_fit(keep):
-        # From the old pose (a knock of a few degrees), and from a PnP with the old lens (a
-        # camera moved further than Gauss-Newton reaches from there); the better is kept.
-        starts = [cam0.copy()]
-        if np.sum(keep) >= 4:
-            ok, rvec, tvec = cv2.solvePnP(X[keep].reshape(-1, 1, 3),
-                                          uv[keep].reshape(-1, 1, 2), cam0.K, cam0.dist,
-                                          flags=cv2.SOLVEPNP_EPNP)
-            if ok:
-                start = cam0.copy()
-                start.rotation = cv2.Rodrigues(rvec)[0]
-                start.translation = np.asarray(tvec, float).reshape(3)
-                starts.append(start)
-        fits = []
-        for start in starts:
-            try:
-                fits.append(refine(start, keep))
-            except np.linalg.LinAlgError:
-                continue
-        rows = np.repeat(keep, 2)
-        return min(fits, key=lambda f: float(f[2][rows] @ f[2][rows])
-                   if np.all(np.isfinite(f[2][rows])) else np.inf) if fits else None
-
-    keep = np.ones(n, bool)
-    got = best_fit(keep)
-    if got is None:
+    # From the old pose (a knock of a few degrees), and from a PnP with the old lens (a camera
+    # moved further than Gauss-Newton reaches from there); the better fit is kept.
+    starts = [cam0.copy()]
+    if n >= 4:
+        ok, rvec, tvec = cv2.solvePnP(X.reshape(-1, 1, 3), uv.reshape(-1, 1, 2), cam0.K,
+                                      cam0.dist, flags=cv2.SOLVEPNP_EPNP)
+        if ok:
+            start = cam0.copy()
+            start.rotation = cv2.Rodrigues(rvec)[0]
+            start.translation = np.asarray(tvec, float).reshape(3)
+            starts.append(start)
+    fits = []
+    for start in starts:
+        try:
+            fits.append(refine(start))
+        except np.linalg.LinAlgError:
+            continue
+    if not fits:
         return CameraChangeFit(float('nan'), float('nan'), float('nan'), float('inf'), used,
-                               old_d2, np.full(n, np.inf), kept=keep)
-    # A few views may be bad detections (a knocked camera's first images are searched over a
-    # scene that has moved): the worst view beyond the per-view quantile at the false-alarm
-    # probability is set aside and the camera refitted, up to MAX_OUTLIER_FRACTION of the
-    # views - only while the views kept still disagree with the old camera, so that a few bad
-    # views among agreeing ones are never explained as a change.
-    limit = float(chi2.isf(false_alarm, 2))
-    for _ in range(int(MAX_OUTLIER_FRACTION * n) if set_aside else 0):
-        d2 = np.sum(got[2].reshape(-1, 2) ** 2, axis=1)
-        worst = int(np.argmax(np.where(keep, d2, -np.inf)))
-        if not d2[worst] > limit or np.sum(keep) - 1 < CONFIRM_OBSERVATIONS:
-            break
-        trial = keep.copy()
-        trial[worst] = False
-        if np.sum(old_d2[trial]) <= float(chi2.isf(false_alarm, 2 * int(np.sum(trial)))):
-            break
-        again = best_fit(trial)
-        if again is None:
-            break
-        keep, got = trial, again
-    cam, scale, r = got
-    rows = np.repeat(keep, 2)
-    dof = 2 * int(np.sum(keep)) - (7 if fit_focal else 6)
-    ratio = (float(r[rows] @ r[rows]) / float(chi2.isf(false_alarm, dof)) if dof > 0
-             else float('nan'))
+                               np.sum(r_old.reshape(-1, 2) ** 2, axis=1),
+                               np.full(n, np.inf))
+    cam, scale, r = min(fits, key=lambda f: float(f[2] @ f[2]) if np.all(np.isfinite(f[2]))
+                        else np.inf)
+    dof = 2 * n - (7 if fit_focal else 6)
+    ratio = (float(r @ r) / float(chi2.isf(false_alarm, dof)) if dof > 0 else float('nan'))
     angle = np.linalg.norm(Rotation.from_matrix(cam.rotation @ cam0.rotation.T).as_rotvec())
     depth = float(np.median((X @ cam0.rotation.T + cam0.translation)[:, 2])) if n else np.nan
     return CameraChangeFit(float(np.degrees(angle)),
                            float(1e3 * np.linalg.norm(cam.center - cam0.center)),
-                           float(100.0 * (scale - 1.0)), ratio, used, old_d2,
-                           np.sum(r.reshape(-1, 2) ** 2, axis=1), depth, keep)
+                           float(100.0 * (scale - 1.0)), ratio, used,
+                           np.sum(r_old.reshape(-1, 2) ** 2, axis=1),
+                           np.sum(r.reshape(-1, 2) ** 2, axis=1), depth)
 
 
 def size_change(model: PredictionModel, camera, seen, scales=None, false_alarm=1e-6):
@@ -831,12 +784,8 @@ def size_change(model: PredictionModel, camera, seen, scales=None, false_alarm=1
     workspace: then it is called 'pose', the size being what a pose alone would have to
     change by.
     """
-    # Every view, none set aside: over the many views a size is measured on, the ones the old
-    # calibration describes worst would be set aside first, and the residual variance factor
-    # below would lose what it is there for (a 1 deg knock was then called a lens change).
-    free = explain_by_camera_change(model, camera, seen, scales, false_alarm, set_aside=False)
-    held = explain_by_camera_change(model, camera, seen, scales, false_alarm, fit_focal=False,
-                                    set_aside=False)
+    free = explain_by_camera_change(model, camera, seen, scales, false_alarm)
+    held = explain_by_camera_change(model, camera, seen, scales, false_alarm, fit_focal=False)
     gain = float(np.sum(held.new_d2) - np.sum(free.new_d2))
     dof = 2 * len(free.used) - 7
     if dof > 0 and np.isfinite(gain):
@@ -1000,15 +949,11 @@ class ChangeMonitor:
         # The CUSUM's climb may start on old views that happened to disagree: the change
         # point is the split that explains the views best, the views before it by the old
         # camera and those after by the refitted one (at least CONFIRM_OBSERVATIONS of them).
-        # Each view's part is capped at the per-view quantile: a wild detection costs the
-        # same on either side and does not decide where the change began.
-        cap = float(chi2.isf(self.settings.false_alarm, 2))
-        best, best_cost = 0, float(np.sum(np.minimum(fit.new_d2, cap)))
+        best, best_cost = 0, float(np.sum(fit.new_d2))
         for k in range(1, len(sus['seen']) - CONFIRM_OBSERVATIONS + 1):
             f = explain_by_camera_change(self.model, camera, sus['seen'][k:], scales,
                                          self.settings.false_alarm)
-            cost = float(np.sum(np.minimum(fit.old_d2[:k], cap)) +
-                         np.sum(np.minimum(f.new_d2, cap)))
+            cost = float(np.sum(fit.old_d2[:k]) + np.sum(f.new_d2))
             if cost < best_cost:
                 best, best_cost = k, cost
         if best > 0:
