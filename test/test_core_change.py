@@ -181,6 +181,8 @@ def test_agreement_without_a_joint_covariance_is_the_fusions_chi_square():
 
 def test_a_views_added_noise_widens_its_own_prediction_and_weakens_its_vote():
     """
+    A view's added noise widens its own prediction by exactly that and weakens its vote.
+
     ``extra`` on the tested camera adds exactly that to S; on another camera it weakens that
     camera's part in the fused point, and without bound it is the same as leaving it out.
     """
@@ -206,6 +208,8 @@ def test_a_views_added_noise_widens_its_own_prediction_and_weakens_its_vote():
 
 def test_a_view_known_to_be_off_by_its_added_noise_raises_no_alarm_but_a_knock_still_does():
     """
+    Views known to be off by their added noise raise no alarm; a knock still does.
+
     A camera's views offset by 1 px from some time on (a light correction carried to a place
     it was not measured at, 3 times the image noise) climb the CUSUM to an alarm; given that
     offset as their added noise (``extra``, 1 px^2) they do not, while a 1 degree knock of
@@ -403,6 +407,8 @@ def test_a_static_spot_taken_for_the_marker_is_not_a_camera_that_moved():
 
 def test_a_camera_is_not_named_while_another_that_would_explain_it_is_untried(monkeypatch):
     """
+    A camera is not named while another that might explain the views could not be refitted.
+
     Two exclusions each leave agreement; one camera's refit explains its views, the other has
     too few views to be refitted.  That is no unique explanation: unexplained (and judged
     again at the next view), not a change of the first - which retired a good camera's data
