@@ -290,6 +290,11 @@ class CalibrationEngine:
         # robot's kinematic error parameters at each sample's joint angles (kinematic, hybrid
         # and auto need it; the engine itself knows nothing of robots).
         self.kinematics_fn = kinematics_fn
+        #: run_solver(fn, *args, **kwargs) -> fn(*args, **kwargs): how each adjustment runs
+        #: (None: here, on the calling thread).  The node runs them in a child process
+        #: (:class:`~armcal_ros.solver_process.SolverProcess`), so that a solve does not hold
+        #: the interpreter its front end needs; the engine's state stays in this process.
+        self.run_solver: Optional[Callable] = None
         self._auto_choice: Optional[PriorSettings] = None
         self._auto_samples = 0
         self._auto_pixel_sigma: Optional[float] = None   # the image noise auto estimated
@@ -514,9 +519,9 @@ class CalibrationEngine:
             data = BoardData(poses, np.zeros((1, 3)), obs.point, obs.camera,
                              np.zeros(len(obs.point), np.int64), obs.uv)
             try:
-                first = calibrate_board(specs, data, PriorSettings('fixed'), solver,
-                                        T_link_target=seed, mount=MountSettings(estimate=True),
-                                        initial=initial)
+                first = self._run(calibrate_board, specs, data, PriorSettings('fixed'), solver,
+                                  T_link_target=seed, mount=MountSettings(estimate=True),
+                                  initial=initial)
             except ValueError:
                 first = None
             adj = None if first is None else first.calibration.adjustment
@@ -650,11 +655,12 @@ class CalibrationEngine:
         if self.settings.prior.model != 'auto':
             kw['reference'] = self._reference_for(specs_kept, points, obs, initial, kin, solver,
                                                   n, arrays, sel)
-        result = calibrate(specs_kept, points, obs, prior, solver, initial=initial, **kw)
+        result = self._run(calibrate, specs_kept, points, obs, prior, solver, initial=initial,
+                           **kw)
         if (result.adjustment is None or not np.all(np.isfinite(result.adjustment.covariance))) \
                 and initial is not None:
             # A warm start that failed may have been poisoned: try once from scratch.
-            result = calibrate(specs_kept, points, obs, prior, solver, **kw)
+            result = self._run(calibrate, specs_kept, points, obs, prior, solver, **kw)
         if searching:
             self._remember_auto_choice(result, n)
         outcome = self._judge(result, n, time.perf_counter() - t0)
@@ -684,8 +690,9 @@ class CalibrationEngine:
         lamp, ambient, radius = self.settings.marker_light
         cams = dict(initial or {})
         if any(s.name not in cams for s in specs):
-            first = calibrate(specs, points, obs, replace(self.settings.prior, model='fixed'),
-                              solver, initial=initial or None,
+            first = self._run(calibrate, specs, points, obs,
+                              replace(self.settings.prior, model='fixed'), solver,
+                              initial=initial or None,
                               **{k: v for k, v in kw.items() if k == 'pooled_sigma_px'})
             cams.update({k: v for k, v in first.cameras.items() if k not in cams})
         have = [s.name in cams for s in specs]
@@ -778,8 +785,9 @@ class CalibrationEngine:
         if ref is not None and n < 1.5 * at:
             return ref
         pooled = pooled_pixel_sigma(arrays.spread_px[sel], arrays.n_frames[sel])
-        search = calibrate(specs, points, obs, replace(self.settings.prior, model='auto'),
-                           solver, initial=initial, kinematics=kin, pooled_sigma_px=pooled)
+        search = self._run(calibrate, specs, points, obs,
+                           replace(self.settings.prior, model='auto'), solver, initial=initial,
+                           kinematics=kin, pooled_sigma_px=pooled)
         if search.selection is None or not search.success:
             return ref
         with self._lock:
@@ -865,10 +873,10 @@ class CalibrationEngine:
             return refuse('no board corners in the samples')
         solver = self._solver_settings(searching)
         try:
-            res = calibrate_board(specs, data, prior, solver, T_link_target=seed,
-                                  mount=MountSettings(estimate=board.estimate_mount,
-                                                      estimate_scale=board.estimate_scale),
-                                  initial=initial, scale=scale)
+            res = self._run(calibrate_board, specs, data, prior, solver, T_link_target=seed,
+                            mount=MountSettings(estimate=board.estimate_mount,
+                                                estimate_scale=board.estimate_scale),
+                            initial=initial, scale=scale)
         except ValueError as exc:
             return refuse(f'board solve failed: {exc}')
         result = res.calibration
@@ -950,6 +958,26 @@ class CalibrationEngine:
             cb(outcome)
         return outcome
 
+    def _run(self, fn, *args, **kwargs):
+        """One adjustment (``calibrate`` or ``calibrate_board``), where :attr:`run_solver` says."""
+        if self.run_solver is None:
+            return fn(*args, **kwargs)
+        return self.run_solver(fn, *args, **kwargs)
+
+    def _solve_in_background(self):
+        """
+        Run :meth:`solve` on the solver thread; an unexpected error ends as a failed outcome.
+
+        Without this an error (or a solver process that died) would end the thread with a
+        traceback on stderr and no outcome: the node would go on as if no solve had been due.
+        """
+        t0 = time.perf_counter()
+        try:
+            self.solve()
+        except Exception as exc:  # noqa: B902 - whatever it is, it must be reported
+            self._finish(SolveOutcome(False, f'solve failed: {type(exc).__name__}: {exc}',
+                                      None, None, len(self.store), time.perf_counter() - t0))
+
     def maybe_solve_async(self, force=False):
         """Start a background solve if one is due (or ``force``); return True if started."""
         with self._lock:
@@ -957,7 +985,8 @@ class CalibrationEngine:
                 return False
             if not force and not self.solve_due()[0]:
                 return False
-            self._worker = threading.Thread(target=self.solve, name='armcal-solver', daemon=True)
+            self._worker = threading.Thread(target=self._solve_in_background, name='armcal-solver',
+                                            daemon=True)
             self._worker.start()
             return True
 

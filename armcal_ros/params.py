@@ -204,6 +204,10 @@ PARAMS = [
     Param('max_sample_age', 'double', 0.0,
           'forgetting for slow drift: views older than this (s, before the newest) are '
           'retired before each solve; 0 keeps every view', _nonneg, minimum=0.0),
+    Param('solver_process', 'bool', True,
+          'node: run each solve in a child process (on another core), so that a solve never '
+          'holds the interpreter the front end needs; false solves on a thread of the node '
+          '(armcal calibrate always solves in its own process)'),
     Param('sphere_min_radius_px', 'double', 1.5, 'smallest sphere image radius, pixels',
           _positive, minimum=0.0),
     Param('sphere_max_radius_px', 'double', 40.0, 'largest sphere image radius, pixels',

@@ -22,7 +22,7 @@ part           parameters
 ``solver``     pixel_sigma, free_distortion, robust_loss(_scale), outlier_gate_sigmas, and the
                intrinsics read from intrinsics_files
 ``schedule``   min_samples, solve_period, min_new_samples, detect_changes, change_false_alarm,
-               recalibration_samples, max_sample_age
+               recalibration_samples, max_sample_age, solver_process
 ``outputs``    output_dir, publish_tf, set_camera_info_services, resume, write_camera_info,
                camera_info_dir, camera_info_names, republish_images
 ``intrinsics`` intrinsics_mode, intrinsics_sigma_px, intrinsics_sigma_dist, the CameraInfo
@@ -206,6 +206,8 @@ class ScheduleSettings:
     change_false_alarm: float = 1e-6
     recalibration_samples: int = 20
     max_sample_age_s: float = 0.0
+    #: The node's solves in a child process (armcal_ros/solver_process.py).
+    solver_process: bool = True
 
 
 @dataclass(frozen=True)
@@ -386,7 +388,8 @@ def settings_from_values(values: Dict[str, Any], require_robot_model=True,
         solver=solver_settings(v),
         schedule=ScheduleSettings(v['min_samples'], v['solve_period'], v['min_new_samples'],
                                   v['detect_changes'], v['change_false_alarm'],
-                                  v['recalibration_samples'], v['max_sample_age']),
+                                  v['recalibration_samples'], v['max_sample_age'],
+                                  v['solver_process']),
         outputs=OutputSettings(
             v['output_dir'] or default_output_dir(node_name), v['publish_tf'],
             tuple(v['set_camera_info_services']), v['resume'],

@@ -23,7 +23,9 @@ script replays the bag in-process (armcal_ros.ros.replay, reliable publishers) a
 - shutdown: SIGINT -> the node process gone, seconds (samples saved on the way).
 
 The first rate is also run with solves disabled (min_samples 100000), to separate the front
-end's CPU from the solver's, and the second rate with ``republish_images`` on.
+end's CPU from the solver's, and with the solves on a thread of the node (``solver_process``
+false; the node's CPU is then the solves' too); the second rate with ``republish_images`` on.
+The node's own CPU and its solver process's (the node's children) are read separately.
 
 Usage: python bench/node.py [--bag bags/demo] [--params config/demo.yaml] [--rates 1 2 4 8]
 Writes docs/BENCHMARKS.md (section "node") and docs/bench/node.json.  The first rate is the one
@@ -80,34 +82,53 @@ def dwells_covered(stamps, gt):
 
 
 class CpuSampler(threading.Thread):
-    """Sample a process's CPU time from /proc/<pid>/stat once a second."""
+    """
+    Sample a process's CPU time, and its children's, from /proc once a second.
+
+    The children are the node's solver process (``solver_process``); each child's time is
+    read while it lives, and a child that ended keeps its last reading.
+    """
 
     def __init__(self, pid):
         super().__init__(daemon=True)
         self.pid, self.tick = pid, os.sysconf('SC_CLK_TCK')
-        self.samples = []            # (wall time, cpu seconds)
+        self.samples = []            # (wall time, own cpu seconds, children's cpu seconds)
+        self._children = {}          # pid -> its latest cpu seconds
         self.stop = threading.Event()
 
-    def cpu(self):
-        with open(f'/proc/{self.pid}/stat') as f:
+    def _stat(self, pid):
+        with open(f'/proc/{pid}/stat') as f:
             fields = f.read().rsplit(')', 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / self.tick   # utime, stime
+        return int(fields[1]), (int(fields[11]) + int(fields[12])) / self.tick  # ppid, cpu
+
+    def _read_children(self):
+        for entry in os.listdir('/proc'):
+            if entry.isdigit() and int(entry) != self.pid:
+                try:
+                    ppid, cpu = self._stat(entry)
+                except (OSError, ValueError, IndexError):
+                    continue
+                if ppid == self.pid:
+                    self._children[int(entry)] = cpu
+        return sum(self._children.values())
 
     def run(self):
         while not self.stop.is_set():
             try:
-                self.samples.append((time.monotonic(), self.cpu()))
+                own = self._stat(self.pid)[1]
             except OSError:
                 return
+            self.samples.append((time.monotonic(), own, self._read_children()))
             self.stop.wait(1.0)
 
-    def between(self, t0, t1):
-        """Return (average %, peak 1-s %) of one core between t0 and t1."""
+    def between(self, t0, t1, column=1):
+        """Return (average %, peak 1-s %) of one core between t0 and t1 (2: the children)."""
         s = np.array([x for x in self.samples if t0 <= x[0] <= t1])
         if len(s) < 2:
             return float('nan'), float('nan')
-        rates = np.diff(s[:, 1]) / np.diff(s[:, 0]) * 100.0
-        return float((s[-1, 1] - s[0, 1]) / (s[-1, 0] - s[0, 0]) * 100.0), float(rates.max())
+        c = s[:, column] if column in (1, 2) else s[:, 1] + s[:, 2]
+        rates = np.diff(c) / np.diff(s[:, 0]) * 100.0
+        return float((c[-1] - c[0]) / (s[-1, 0] - s[0, 0]) * 100.0), float(rates.max())
 
 
 def run_rate(bag, params, rate, gt, out_dir, env, cameras, extra=()):
@@ -172,6 +193,8 @@ def run_rate(bag, params, rate, gt, out_dir, env, cameras, extra=()):
         t1 = time.monotonic()
         time.sleep(3.0)          # the idle flush closes the last dwell
         cpu_avg, cpu_peak = cpu.between(t0 + stats.discovery_s, t1)
+        solver_avg, solver_peak = cpu.between(t0 + stats.discovery_s, t1, column=2)
+        total_avg, total_peak = cpu.between(t0 + stats.discovery_s, t1, column=3)
         final = dict(diag)
     finally:
         cpu.stop.set()
@@ -216,7 +239,9 @@ def run_rate(bag, params, rate, gt, out_dir, env, cameras, extra=()):
                 info_paired += 1
                 info_lat.append(got[st] - wall)
     return dict(rate=rate, wall_s=stats.wall_s, bag_s=stats.bag_s, max_lag_s=stats.max_lag_s,
-                cpu_avg=cpu_avg, cpu_peak=cpu_peak, samples_produced=produced,
+                cpu_avg=cpu_avg, cpu_peak=cpu_peak, solver_cpu_avg=solver_avg,
+                solver_cpu_peak=solver_peak, total_cpu_avg=total_avg, total_cpu_peak=total_peak,
+                samples_produced=produced,
                 samples_stored=int(final.get('samples', 0)),
                 frames=int(final.get('input_frames', 0)),
                 joint_states=int(final.get('input_joint_states', 0)),
@@ -251,7 +276,8 @@ def main():
           f'{len(gt["dwell_start_ns"])} dwells ({time.perf_counter() - t:.0f} s)', flush=True)
     runs = []
     configs = ([(args.rates[0], ['min_samples:=100000'])] + [(r, []) for r in args.rates]
-               + [(args.rates[min(1, len(args.rates) - 1)], ['republish_images:=true'])])
+               + [(args.rates[min(1, len(args.rates) - 1)], ['republish_images:=true']),
+                  (args.rates[0], ['solver_process:=false'])])
     cameras = list(settings.inputs.camera_names)
     image_topics[:] = list(settings.inputs.image_topics)
     for i, (rate, extra) in enumerate(configs):
@@ -261,6 +287,7 @@ def main():
         r['lost'] = len(ref_dwells - set(r['covered']))
         lat = np.array(r['latency_s'])
         print(f'rate {rate:g}x {extra}: cpu avg {r["cpu_avg"]:.0f} % peak {r["cpu_peak"]:.0f} %, '
+              f'solver process {r["solver_cpu_avg"]:.0f} %, '
               f'dwells lost {r["lost"]}/{reference}, latency median '
               f'{np.median(lat) if len(lat) else float("nan"):.3f} s, '
               f'dropped {r["queue_dropped"]}, replay lag {r["max_lag_s"]:.2f} s, CameraInfo '
@@ -271,6 +298,7 @@ def main():
     best = max(ok) if ok else None
     first = runs[1]
     front = runs[0]
+    thread = runs[-1]
     lat = np.array(first['latency_s'])
     rows = []
     for r in runs:
@@ -278,10 +306,13 @@ def main():
         js_sent = r['published'].get(settings.inputs.joint_states_topic, 0)
         img_sent = sum(v for k, v in r['published'].items() if k in settings.inputs.image_topics)
         label = f'{r["rate"]:g}x' + (' (no solves)' if 'min_samples:=100000' in r['extra']
-                                     else ' (republish_images)' if r['extra'] else '')
+                                     else ' (republish_images)' if 'republish_images:=true'
+                                     in r['extra'] else ' (solves in the node)' if r['extra']
+                                     else '')
         il = np.array(r['info_latency_s'])
         rows.append([label, f'{r["wall_s"]:.0f}', f'{r["cpu_avg"]:.0f}',
-                     f'{r["cpu_peak"]:.0f}', f'{r["joint_states"]}/{js_sent}',
+                     f'{r["cpu_peak"]:.0f}', f'{r["solver_cpu_avg"]:.0f}',
+                     f'{r["total_cpu_avg"]:.0f}', f'{r["joint_states"]}/{js_sent}',
                      f'{r["frames"]}/{img_sent}', f'{reference - r["lost"]}/{reference}',
                      sum(r['queue_dropped'].values()),
                      f'{np.median(la):.3f}' if len(la) else '-',
@@ -295,11 +326,13 @@ def main():
         '',
         f'The node replaying `{os.path.relpath(args.bag, ROOT)}` with '
         f'`{os.path.relpath(args.params, ROOT)}` through `armcal_ros.ros.replay` (reliable '
-        f'publishers, real DDS on this machine); the node\'s CPU from /proc (solves included, '
-        f'% of one core, peak over one second). Dwells: ground-truth dwells with a stored sample '
-        f'in the node / with one offline (same front end and store fed in bag order). Latency: '
-        f'last image '
-        f'of a dwell published -> its sample received on `~/samples`, seconds. Machine: '
+        f'publishers, real DDS on this machine); CPU from /proc in % of one core: the node '
+        f'process (average, and peak over one second) and its solver process '
+        f'(`solver_process`, the default: each solve\'s adjustments run there), and both '
+        f'together; the last row solves on a thread of the node (`solver_process: false`). '
+        f'Dwells: ground-truth dwells with a stored sample in the node / with one offline '
+        f'(same front end and store fed in bag order). Latency: last image of a dwell '
+        f'published -> its sample received on `~/samples`, seconds. Machine: '
         f'{machine()}; this machine\'s speed varied up to 2 x between runs of one day, so compare '
         f'rows of one run, and runs of two versions only side by side. '
         f'Images with their CameraInfo: images the replay published after the camera\'s first '
@@ -307,13 +340,18 @@ def main():
         f'publishes one per image it receives); its latency: image published -> CameraInfo '
         f'received here.',
         '',
-        table(['rate', 'wall s', 'CPU avg %', 'CPU peak %', 'joint states recv/sent',
+        table(['rate', 'wall s', 'node CPU avg %', 'node CPU peak %', 'solver process CPU avg %',
+               'total CPU avg %', 'joint states recv/sent',
                'images recv/sent', 'dwells', 'queue drops', 'latency median s',
                'latency p95 s', 'solves', 'images with their CameraInfo',
                'CameraInfo latency median ms', 'p95 ms', 'SIGINT -> exit s'], rows),
         '',
-        f'At {first["rate"]:g}x: average CPU {first["cpu_avg"]:.0f} % of one core (target under '
-        f'50 %), peak {first["cpu_peak"]:.0f} %; without solves (front end and ROS I/O only) '
+        f'At {first["rate"]:g}x: the node\'s average CPU {first["cpu_avg"]:.0f} % of one core '
+        f'(target under 50 %), peak {first["cpu_peak"]:.0f} %; its solver process '
+        f'{first["solver_cpu_avg"]:.0f} %, {first["total_cpu_avg"]:.0f} % together; with the '
+        f'solves on a thread of the node {thread["cpu_avg"]:.0f} % and '
+        f'{sum(thread["queue_dropped"].values())} inputs dropped (against '
+        f'{sum(first["queue_dropped"].values())}); without solves (front end and ROS I/O only) '
         f'{front["cpu_avg"]:.0f} %; latency median '
         f'{np.median(lat) if len(lat) else float("nan"):.3f} s. Highest rate with no dwell '
         f'lost: ' + (f'{best:g}x.' if best is not None else 'none of the rates tried.'),

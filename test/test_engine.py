@@ -11,12 +11,13 @@ from scipy.spatial.transform import Rotation
 from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.priors import PriorSettings
 from armcal_ros.engine import CalibrationEngine, EngineSettings
-from armcal_ros.frontend.samples import BoardTarget, Observation, Sample
+from armcal_ros.frontend.samples import BoardTarget, Observation
 from armcal_ros.io.results_files import load_calibration
 from armcal_ros.offline import collect_samples
 from armcal_ros.settings import load_settings
 from armcal_ros.sim.synthetic import make_problem
 from helpers.board_scene import BOARD, check_mount, joint_params, K
+from helpers.point_samples import samples_of as _samples
 
 
 class Clock:
@@ -25,18 +26,6 @@ class Clock:
 
     def __call__(self):
         return self.t
-
-
-def _samples(prob):
-    names = [c.name for c in prob.cameras]
-    out = []
-    for i, X in enumerate(prob.measured):
-        sel = prob.obs.point == i
-        obs = {names[j]: Observation(uv[None], [0]) for j, uv in
-               zip(prob.obs.camera[sel], prob.obs.uv[sel])}
-        if obs:
-            out.append(Sample(X, obs, stamp_ns=i))
-    return out
 
 
 def _engine(prob, clock, samples=(), model='independent', **kw):

@@ -194,6 +194,11 @@ def test_calibrate_service_and_camera_info_for_every_camera(live, offline, sim):
             # correlated bias, which the intrinsics hardly see (the poses absorb it).
             assert abs(v - true_vals[k]) <= 4.0 * std, (cam, k, v, true_vals[k], std)
         assert float(live.cam_diag[cam]['rms_px']) < 0.5
+    # The solves ran in one child process of the node (solver_process, the default).
+    where = live.main_diag['solver']
+    assert where.startswith('child process ') and live.main_diag['solver_process_starts'] == '1'
+    with open(f'/proc/{int(where.split()[-1])}/stat') as f:
+        assert int(f.read().rsplit(')', 1)[1].split()[1]) == live.node.p.pid, where
 
 
 def test_camera_info_consumer_reproduces_ground_truth_pixels(live, sim):

@@ -10,8 +10,11 @@ Threads and why:
   work to the front-end worker, in order with the inputs;
 - one front-end worker thread owns the :class:`~armcal_ros.pipeline.SampleCollector` (not
   thread-safe): it pairs, decodes and detects, in arrival order, and adds samples to the engine;
-- the engine's own solver thread runs the bundle adjustment; its result callback publishes
-  CameraInfo, poses, TF and markers, saves the files and commits to the camera drivers.
+- the engine's own solver thread runs each solve; its adjustments run in a child process
+  (``solver_process``, :mod:`armcal_ros.solver_process`) while the thread waits on a pipe, so
+  that a solve of seconds does not take the interpreter from the front end; its result
+  callback publishes CameraInfo, poses, TF and markers, saves the files and commits to the
+  camera drivers.
 
 So a slow decode or a long solve never delays a callback, and a burst the worker cannot keep up
 with costs images (counted in diagnostics), thinned evenly in time per camera so that every
@@ -79,6 +82,7 @@ from armcal_ros.ros.raw_message import header_fields, LazyMessage
 from armcal_ros.ros.status import diagnostic_statuses, NodeState
 from armcal_ros.settings import (settings_from_values, with_given_intrinsics,
                                  with_solver_intrinsics)
+from armcal_ros.solver_process import SolverProcess
 from armcal_ros.stamp_latency import latency_differs, latency_report
 
 #: Parameters that may change while the node runs (they apply from the next solve).
@@ -208,6 +212,11 @@ class CalibratorNode(Node):
         self._latency_said = {}
         self.engine.on_result(self._on_solve)
         self.engine.on_change(self._on_change)
+        # Started by the first solve; it gives its heap's free pages back after each.
+        self.solver = (SolverProcess(after_call=release_free_memory)
+                       if self.settings.schedule.solver_process else None)
+        if self.solver is not None:
+            self.engine.run_solver = self.solver.call
         self.queue = EventQueue(QUEUE_BOUNDS, thinned=('image',))
         self._counts = {}
         self._per_camera = {}
@@ -906,6 +915,13 @@ class CalibratorNode(Node):
         return response
 
     # -- diagnostics ---------------------------------------------------------------------
+    def _solver_where(self):
+        if self.solver is None:
+            return 'in the node (solver_process false)'
+        pid = self.solver.pid
+        return 'child process (starts with the first solve)' if pid is None else \
+            f'child process {pid}'
+
     def node_state(self) -> NodeState:
         """Return a snapshot of what the diagnostics report."""
         e = self.engine
@@ -924,6 +940,8 @@ class CalibratorNode(Node):
             missing_joints=tuple(sorted(self.collector.missing_joints)),
             seen_joint_names=self.collector.seen_joint_names,
             light_pooling={k: f'{p.status}: {p.message}' for k, p in e.light_pooling.items()},
+            solver=self._solver_where(),
+            solver_starts=0 if self.solver is None else self.solver.starts,
             stamp_latency=dict(self._latency_report))
 
     def _publish_diagnostics(self):
@@ -955,6 +973,8 @@ class CalibratorNode(Node):
                                       'discarded (the samples are saved)')
         with self._pub_lock:
             self._closing = True
+        if self.solver is not None:
+            self.solver.close()
         if self._save('at shutdown') is not None:
             self.get_logger().info(f'saved {len(self.engine.store)} samples to '
                                    f'{self.output_dir}')

@@ -78,6 +78,10 @@ class NodeState:
     seen_joint_names: tuple = ()
     #: Camera -> how the light's shift was pooled at the last solve (``shaded_pooled``).
     light_pooling: Dict[str, str] = field(default_factory=dict)
+    #: Where solves run ('in the node', or the child's pid), and how many children were
+    #: started (more than one: a child died and was replaced).
+    solver: str = ''
+    solver_starts: int = 0
     #: Camera -> its stamp latency timed from the frames in motion
     #: (stamp_latency.latency_report: latency_ms, std_ms, frames, status, message, applied_ms).
     stamp_latency: Dict[str, dict] = field(default_factory=dict)
@@ -119,6 +123,8 @@ def diagnostic_statuses(s: NodeState, node_name='armcal') -> List[Status]:
     values = dict(state=state, samples=s.n_samples, min_samples=s.min_samples,
                   solving=s.solving, solves=s.n_solves, solves_rejected=s.n_rejected,
                   published=s.n_published)
+    if s.solver:
+        values.update(solver=s.solver, solver_process_starts=s.solver_starts)
     for name in s.camera_names:
         values[f'samples_{name}'] = s.samples_per_camera.get(name, 0)
     if out is not None:
