@@ -216,7 +216,7 @@ PARAMS = [
           'learn each camera\'s static scene (median of five images kept as the marker moves) '
           'and subtract it before the sphere search: clutter and static look-alikes (lamps, '
           'bolt heads) vanish; a marker parked for about 120 images becomes scenery until it '
-          'moves'),
+          'moves; a knocked camera\'s scene, shifted, moves with it and is learnt again'),
     Param('sphere_centre', 'string', 'shaded_pooled',
           'how the sphere\'s centre is measured: shaded_pooled (default: a fit of a shaded '
           'ball - outline, one lamp from any side, ambient, blur - at every still frame, and '
