@@ -13,7 +13,7 @@ LAYERS = {
     'offline': 5, 'compare': 5,
     'compose': 4,
     'settings': 3, 'params': 3,
-    'engine': 2, 'change_tracking': 2, 'stamp_latency': 2,
+    'engine': 2, 'change_tracking': 2, 'stamp_latency': 2, 'solver_process': 2,
     'frontend': 1,
     'core': 0, 'robot': 0, 'io': 0, 'sim': 0,
 }
