@@ -26,8 +26,9 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from armcal_ros.core.change import (ARM_SIGMA_FLOOR, ChangeEvent, ChangeMonitor,
-                                    ChangeSettings, joint_subset, PredictionModel,
-                                    reference_scales, size_change, View)
+                                    ChangeSettings, CONFIRM_OBSERVATIONS, joint_subset,
+                                    ONSET_SLACK, PredictionModel, reference_scales,
+                                    size_change, View)
 from armcal_ros.io.calib_files import atomic_write_text
 
 CHANGES_FILE = 'changes.json'
@@ -41,6 +42,9 @@ SIZING_VIEWS = 200
 #: shift adds to a new view's noise: 20 views' 2-D errors give the variance within about a
 #: quarter (40 degrees of freedom), and a region newly visited shows within a few views.
 SHIFT_ERROR_VIEWS = 20
+#: Views a newer calibration's monitor tests quietly beside a climbing one before it takes
+#: over (:meth:`ChangeTracker.adopt`): as many as a suspect camera is judged on.
+PENDING_VIEWS = CONFIRM_OBSERVATIONS + ONSET_SLACK
 
 
 @dataclass
@@ -103,6 +107,9 @@ class ChangeTracker:
         self.recalibration_samples = int(recalibration_samples)
         self.enabled = bool(enabled)
         self.monitor: Optional[ChangeMonitor] = None
+        #: A newer calibration's monitor that waits for the current one's climb to end
+        #: (:meth:`adopt`).
+        self.pending: Optional[ChangeMonitor] = None
         self.records: List[ChangeRecord] = []
         self.epoch = 0
         #: epoch -> the calibration in force when it ended (written under DIR/epochs/)
@@ -158,6 +165,27 @@ class ChangeTracker:
                                 joint_subset(joint_covariance, cams))
         return ChangeMonitor(model, scales, self.settings)
 
+    def adopt(self, monitor: Optional[ChangeMonitor]):
+        """
+        Test against ``monitor`` (a newer accepted calibration's) now, or once it has shown it.
+
+        A solve that ran while a camera was drifting off its prediction has absorbed part of
+        the change, so while the current monitor's statistics climb (or it judges a suspect)
+        the newer one waits as :attr:`pending`, testing the same views beside it
+        (:meth:`observe`).  It takes over when the climb ends, when it has tested
+        :data:`PENDING_VIEWS` views without a climb of its own (the climb was the older
+        calibration's: an early one of a few samples predicts with wide parameter
+        covariances and a move of several pixels falls inside them), or when it declares a
+        change itself.
+        """
+        old = self.monitor
+        if old is not None and monitor is not None:
+            monitor.carry_over(old)
+        if old is not None and old.busy:
+            self.pending = monitor
+            return
+        self.monitor, self.pending = monitor, None
+
     def observe(self, sample) -> Optional[ChangeEvent]:
         """Test one new sample; return the event if a change is declared."""
         if self.monitor is None or sample.reference_points is not None:
@@ -167,7 +195,17 @@ class ChangeTracker:
             uvs[n], extra[n] = self._as_solved(n, o, sample.point_nominal)
         stamps = [o.stamp_ns for o in sample.observations.values() if o.stamp_ns]
         stamp = min(stamps) if stamps else sample.stamp_ns
-        return self.monitor.observe(sample.point_nominal, uvs, stamp, extra)
+        event = self.monitor.observe(sample.point_nominal, uvs, stamp, extra)
+        pending = self.pending
+        if pending is None:
+            return event
+        newer = pending.observe(sample.point_nominal, uvs, stamp, extra)
+        if event is not None:
+            return event
+        if newer is not None or not self.monitor.busy or (
+                pending.tested >= PENDING_VIEWS and not pending.busy):
+            self.monitor, self.pending = pending, None
+        return newer
 
     def _as_solved(self, camera, observation, point):
         """
@@ -227,6 +265,8 @@ class ChangeTracker:
                 event.fit.translation_mm
             rec.focal_percent = event.fit.focal_percent
         rec.retired = store.retire(event.onset_ns, self.epoch, camera)
+        # A calibration solved before the change was declared holds the camera's old pose.
+        self.pending = None
         old = calibration.cameras.get(camera) if calibration is not None else None
         self.recalibrating[camera] = (rec, old, event.model)
         self._sizing.pop(camera, None)
@@ -257,6 +297,7 @@ class ChangeTracker:
             rec.epoch = self.epoch
             rec.onset_ns = prev.onset_ns
             rec.retired = store.retire(prev.onset_ns, self.epoch, None)
+            self.pending = None
             rec.status, rec.what = 'restarted', 'arm or marker'
             prev.status = 'confirmed'
         self.records.append(rec)

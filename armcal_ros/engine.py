@@ -762,13 +762,7 @@ class CalibrationEngine:
         with self._lock:
             self.changes.apply_sizes(sized)
             self.changes.light_shifts = dict(self.light_pooling)
-            old = self.changes.monitor
-            # A solve that ran while a camera was drifting off its prediction has absorbed
-            # part of the change: keep testing against the calibration that saw it coming.
-            if old is None or not old.busy:
-                if old is not None and monitor is not None:
-                    monitor.carry_over(old)
-                self.changes.monitor = monitor
+            self.changes.adopt(monitor)
 
     def _reference_for(self, specs, points, obs, initial, kin, solver, n, arrays, sel):
         """

@@ -375,7 +375,7 @@ def _solve(front: FrontEnd, settings: Settings):
     engine.frame_ids.update(front.frame_ids)
     if front.changes is not None:
         engine.changes = copy.deepcopy(front.changes)
-        engine.changes.monitor = None
+        engine.changes.monitor = engine.changes.pending = None
     for cam, (w, h) in front.image_sizes.items():
         engine.set_image_size(cam, w, h)
     outcome = engine.solve(force=True)

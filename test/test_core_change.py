@@ -3,7 +3,8 @@ Change detection (core/change.py): threshold, honest innovations, detection and 
 
 The cameras and points come from :mod:`armcal_ros.sim.synthetic` (arm errors 1 mm, image noise
 0.3 px); the predictor is given the true cameras, so only the test itself is under test here
-(the engine's use of it is in test_engine_changes.py).
+(the engine's use of it is in test_engine_changes.py).  The last tests: the engine's tracker
+(change_tracking.py) handing the test over to a newer calibration.
 """
 import numpy as np
 import pytest
@@ -430,3 +431,97 @@ def test_a_camera_is_not_named_while_another_that_would_explain_it_is_untried(mo
     kind, camera, evidence = mon._attribute(seen, a)
     assert evidence[f'refit {a}'] <= 1.0 and np.isnan(evidence[f'refit {b}'])
     assert kind == 'unexplained' and evidence['ambiguous'] == 1.0
+
+
+def _tracked(tracker, X, measured, uvs, knock_from, knocked, rng, offer=None):
+    """Feed samples to a ChangeTracker (the knocked camera's views from ``knock_from`` on)."""
+    from armcal_ros.frontend.samples import Observation, Sample
+    offered = None
+    for k in range(len(X)):
+        obs = dict(uvs[k])
+        if k >= knock_from and knocked.name in obs:
+            obs[knocked.name] = knocked.project(X[k:k + 1])[0] + rng.normal(0, PIXEL_SIGMA, 2)
+        if offer is not None and offered is None and offer[0](k, tracker):
+            offered = k
+            tracker.adopt(offer[1])
+        sample = Sample(measured[k], {n: Observation(uv[None], [0], stamp_ns=k)
+                                      for n, uv in obs.items()}, stamp_ns=k)
+        event = tracker.observe(sample)
+        if event is not None and event.kind != 'disagreement':
+            return k, event, offered
+    return None, None, offered
+
+
+def test_a_newer_calibration_takes_over_from_a_climbing_one_once_it_has_tested_quietly():
+    """
+    A newer calibration offered while the current one climbs waits beside it, then takes over.
+
+    The current predictor is an early calibration: one camera a little off (its CUSUM climbs)
+    and the knocked camera's parameters so uncertain that a 0.25 degree knock hides inside its
+    predicted spread.  Kept for the rest of the session it never finds the knock; the newer,
+    accurate one, offered during the climb, takes over after PENDING_VIEWS quiet views and
+    finds the knock within 10 views.
+    """
+    from armcal_ros.change_tracking import ChangeTracker
+    cams, X, measured, uvs = _stream(300, 3)
+    names = [c.name for c in cams]
+    early = [c.copy() for c in cams]
+    early[0].cx += 0.45
+    params = ['fx', 'fy', 'cx', 'cy', 'wx', 'wy', 'wz', 'tx', 'ty', 'tz']
+    wide = np.diag(np.array([30, 30, 30, 30, 0.02, 0.02, 0.02, 0.02, 0.02, 0.02]) ** 2)
+    early_model = PredictionModel({c.name: c for c in early}, {n: PIXEL_SIGMA for n in names},
+                                  ARM_SIGMA, {names[1]: (params, wide)})
+    scales = reference_scales(_model(cams), measured[:100], uvs[:100])
+    knocked = _knock(cams[1], 0.25, np.random.default_rng(4))
+
+    def climbing(k, tracker):
+        return k >= 20 and tracker.monitor.busy
+
+    runs = {}
+    for offered in (False, True):
+        tracker = ChangeTracker()
+        tracker.adopt(ChangeMonitor(early_model, scales))
+        newer = ChangeMonitor(_model(cams), scales)
+        runs[offered] = _tracked(tracker, X, measured, uvs, 150, knocked,
+                                 np.random.default_rng(5),
+                                 (climbing, newer) if offered else None), tracker, newer
+    (k, event, _), _, _ = runs[False]
+    assert event is None, 'the early calibration alone should not see the knock'
+    (k, event, at), tracker, newer = runs[True]
+    assert at is not None and tracker.monitor is newer and tracker.pending is None
+    assert event is not None and event.kind == 'camera' and event.camera == names[1]
+    assert 150 <= k < 160 and event.onset_ns >= 150
+
+
+def test_a_climbing_calibration_keeps_testing_when_the_newer_one_absorbed_the_change():
+    """
+    A solve that took in part of a change does not replace the calibration that saw it coming.
+
+    The knock begins, the current monitor climbs; a newer calibration holding half of the
+    knock is offered meanwhile.  The change is declared by the current monitor, and the newer
+    one (the knocked camera's old pose in it) is dropped with the declaration.
+    """
+    from armcal_ros.change_tracking import ChangeTracker
+    from armcal_ros.frontend.store import SampleStore
+    cams, X, measured, uvs = _stream(300, 3)
+    scales = reference_scales(_model(cams), measured[:100], uvs[:100])
+    axis = np.array([0.3, -0.8, 0.5]) / np.linalg.norm([0.3, -0.8, 0.5])
+    knocked, half = cams[1].copy(), cams[1].copy()
+    for cam, deg in ((knocked, 0.5), (half, 0.25)):
+        cam.rotation = Rotation.from_rotvec(np.radians(deg) * axis).as_matrix() @ cams[1].rotation
+        cam.translation = -cam.rotation @ cams[1].center
+    absorbed = ChangeMonitor(_model([cams[0], half, cams[2]]), scales)
+    tracker = ChangeTracker()
+    current = ChangeMonitor(_model(cams), scales)
+    tracker.adopt(current)
+
+    def climbing(k, tracker):
+        return k >= 150 and tracker.monitor.busy
+
+    k, event, at = _tracked(tracker, X, measured, uvs, 150, knocked,
+                            np.random.default_rng(6), (climbing, absorbed))
+    assert at is not None and tracker.pending is absorbed
+    assert tracker.monitor is current
+    assert event.kind == 'camera' and event.camera == cams[1].name and k < 160
+    tracker.declare(event, SampleStore(), None)
+    assert tracker.pending is None and tracker.monitor is current

@@ -127,8 +127,9 @@ IDLE_CAMERA_INFO_S = 1.0
 #: is closed and everything saved, so that the node is gone within 2 s of SIGINT or SIGTERM.
 SHUTDOWN_DRAIN_S = 0.7
 #: Seconds between estimates of each camera's stamp latency from the frames in motion, the
-#: first as soon as there is a calibration (the worker thread; an estimate costs a few tenths
-#: of a second per camera, and a latency is a property of the driver: it does not drift).
+#: first as soon as there is a calibration (the worker thread; an estimate of the demo bag's
+#: three cameras from all of their 730 frames in motion takes 0.24 s of CPU, and a latency
+#: is a property of the driver: it does not drift).
 LATENCY_PERIOD_S = 10.0
 
 
