@@ -12,6 +12,18 @@ import pytest
 pytest.register_assert_rewrite('helpers')
 
 
+def pytest_collection_modifyitems(items):
+    """
+    Mark every test that runs ROS nodes over DDS (it asks for ``ros_env``) with ``ros``.
+
+    ``make test`` runs the others on both cores (pytest-xdist) and these one at a time after
+    them: a live node replaying a bag in real time needs the cores the replay was sized for.
+    """
+    for item in items:
+        if 'ros_env' in getattr(item, 'fixturenames', ()):
+            item.add_marker(pytest.mark.ros)
+
+
 @pytest.fixture(scope='module')
 def ros_env(request, tmp_path_factory):
     """
