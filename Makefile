@@ -26,13 +26,16 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml tools/build_tf2_msgs.p
 demo: $(STAMP)
 	$(PY) -m armcal_ros.cli demo
 
-# The tests without live ROS nodes on both cores (pytest-xdist, a module per worker), then the
-# ones that run nodes over DDS one at a time (each replays a bag in real time and needs the
-# cores it was sized for); the target fails if either part does.
+# The tests without live ROS nodes on both cores (pytest-xdist, a module per worker, BLAS on
+# one thread each), then the ones that run nodes over DDS one at a time (each replays a bag in
+# real time and needs the cores it was sized for); the target fails if either part does.  The
+# two runs share one folder for the recordings both use (test/conftest.py, SHARED_ENV).
 test: $(STAMP)
-	$(PY) -m pytest -ra -n 2 --dist loadfile -m 'not ros' test; a=$$?; \
+	shared=$$(mktemp -d); export ARMCAL_TEST_SHARED=$$shared; \
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 \
+	  $(PY) -m pytest -ra -n 2 --dist loadfile -m 'not ros' test; a=$$?; \
 	$(PY) -m pytest -ra -m ros test; b=$$?; \
-	test $$a -eq 0 && test $$b -eq 0
+	rm -rf $$shared; test $$a -eq 0 && test $$b -eq 0
 
 # Every benchmark script; each prints its table and rewrites its section of docs/BENCHMARKS.md.
 bench: $(STAMP)

@@ -6,22 +6,35 @@ pytest puts this folder on sys.path for this file (it is not a package), so the 
 asks for them, after ``pytest.importorskip('rclpy')``: the other tests run without ROS.
 """
 
+import os
+
 import pytest
 
 # Plain asserts in the helpers report their operands as the tests' own asserts do.
 pytest.register_assert_rewrite('helpers')
 
+#: A folder that outlives one pytest run (``make test`` sets it for both of its runs): the
+#: session's costly recordings are written there once and read by the other run.
+SHARED_ENV = 'ARMCAL_TEST_SHARED'
+
 
 def pytest_collection_modifyitems(items):
     """
-    Mark every test that runs ROS nodes over DDS (it asks for ``ros_env``) with ``ros``.
+    Mark the tests that run ROS nodes over DDS with ``ros``; put slow modules first.
 
-    ``make test`` runs the others on both cores (pytest-xdist) and these one at a time after
-    them: a live node replaying a bag in real time needs the cores the replay was sized for.
+    A test that asks for ``ros_env`` runs nodes.  ``make test`` runs the others on both cores
+    (pytest-xdist, a module per worker) and these one at a time after them: a live node
+    replaying a bag in real time needs the cores the replay was sized for.  The modules with
+    a test marked ``slow`` go first (in their own order), so that the workers end on short
+    modules rather than one waiting for the other's last long one.
     """
+    slow = set()
     for item in items:
         if 'ros_env' in getattr(item, 'fixturenames', ()):
             item.add_marker(pytest.mark.ros)
+        if item.get_closest_marker('slow') is not None:
+            slow.add(item.module.__name__)
+    items.sort(key=lambda item: item.module.__name__ not in slow)
 
 
 @pytest.fixture(scope='module')
@@ -78,7 +91,15 @@ def knocked_bag(tmp_path_factory):
     cameras at the end, ``epochs/`` and ``changes.yaml``, and the cell's ``params.yaml``.
     """
     from armcal_ros.cli import main
-    bag = tmp_path_factory.mktemp('knocked') / 'bag'
-    assert main(['simulate', '--output', str(bag), '--duration', '150', '--knock',
-                 'cam2:75:1:4', '--no-zstd', '--quiet']) == 0
-    return bag
+
+    def write(bag):
+        return main(['simulate', '--output', str(bag), '--duration', '150', '--knock',
+                     'cam2:75:1:4', '--no-zstd', '--quiet']) == 0
+    shared = os.environ.get(SHARED_ENV)
+    if not shared:
+        bag = tmp_path_factory.mktemp('knocked') / 'bag'
+        assert write(bag)
+        return bag
+    # One recording for both runs of make test (written once, under a lock).
+    from helpers.shared import shared_output
+    return shared_output(shared, 'knocked', write)

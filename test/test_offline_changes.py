@@ -9,11 +9,14 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from armcal_ros.io.calib_files import read_cameras
 from armcal_ros.offline import calibrate_bag
 from armcal_ros.settings import load_settings
+
+pytestmark = pytest.mark.slow
 
 
 def _angle(a, b):
