@@ -944,23 +944,20 @@ class ChangeMonitor:
         if len(sus['seen']) < CONFIRM_OBSERVATIONS + ONSET_SLACK:
             return None
         scales = self.current_scales()
-        fit = explain_by_camera_change(self.model, camera, sus['seen'], scales,
-                                       self.settings.false_alarm)
+        fit = self._refit(camera, sus['seen'], scales)
         # The CUSUM's climb may start on old views that happened to disagree: the change
         # point is the split that explains the views best, the views before it by the old
         # camera and those after by the refitted one (at least CONFIRM_OBSERVATIONS of them).
         best, best_cost = 0, float(np.sum(fit.new_d2))
         for k in range(1, len(sus['seen']) - CONFIRM_OBSERVATIONS + 1):
-            f = explain_by_camera_change(self.model, camera, sus['seen'][k:], scales,
-                                         self.settings.false_alarm)
+            f = self._refit(camera, sus['seen'][k:], scales)
             cost = float(np.sum(fit.old_d2[:k]) + np.sum(f.new_d2))
             if cost < best_cost:
                 best, best_cost = k, cost
         if best > 0:
             sus['seen'] = sus['seen'][best:]
             sus['onset'] = sus['seen'][0].stamp_ns
-            fit = explain_by_camera_change(self.model, camera, sus['seen'], scales,
-                                           self.settings.false_alarm)
+            fit = self._refit(camera, sus['seen'], scales)
         if not fit.explains and len(sus['seen']) < MAX_SUSPECT_VIEWS:
             # Not explained yet: wait while the latest views still disagree with the old
             # calibration as a whole (the change may have begun after the climb did).
@@ -984,6 +981,19 @@ class ChangeMonitor:
             return event
         return ChangeEvent('disagreement', camera, sus['onset'], stamp, sus['statistic'],
                            self.threshold, len(fit.used), evidence, fit)
+
+    def _refit(self, camera, seen, scales) -> CameraChangeFit:
+        """
+        Refit ``camera`` to ``seen``: its pose, and its focal length where the views ask for it.
+
+        The focal length is freed only when that lowers chi^2 beyond chance
+        (:func:`size_change`'s F test).  Freed always, it and a move along the optical axis
+        trade off over a shallow workspace, and a refit could explain a disagreement of a
+        pixel by sliding along that direction: on a lamp-lit, textured two-camera recording
+        read by intensity centroids, a camera "moved" by 344 mm and 1.5 deg to explain views
+        about a pixel off, where the pose alone explained nothing.
+        """
+        return size_change(self.model, camera, seen, scales, self.settings.false_alarm)[1]
 
     def _agreement(self, seen: List[View], leave_out=None, use_arm=True, alpha=None):
         """chi^2 / its quantile at the false-alarm probability, over ``seen`` (nan: untestable)."""
@@ -1036,8 +1046,7 @@ class ChangeMonitor:
             scales = self.current_scales()
             for n in ok:
                 views = [v for v in seen if n in v.uvs][ONSET_SLACK:]
-                fit = (explain_by_camera_change(self.model, n, views, scales,
-                                                self.settings.false_alarm)
+                fit = (self._refit(n, views, scales)
                        if len(views) >= CONFIRM_OBSERVATIONS else None)
                 evidence[f'refit {n}'] = fit.ratio if fit is not None else float('nan')
                 if fit is not None and not fit.plausible:
