@@ -213,6 +213,31 @@ def test_frames_of_another_size_or_absurdly_large_are_counted_and_skipped():
     assert col.counts['detections'] + col.counts['frames_no_marker'] == 1
 
 
+def test_a_detector_failing_on_a_frame_costs_that_frame_only():
+    """A detector that raises on some frames: those are counted and said once, the rest pool."""
+    class Flaky:
+        def __init__(self):
+            self.calls = 0
+            self.rng = np.random.default_rng(6)
+
+        def detect(self, image):
+            self.calls += 1
+            if self.calls % 7 == 3:
+                raise ValueError('radius0 and sigma0 must be > 0, got 0.0, 0.6')
+            return [Detection(uv=np.array([320.0, 240.0]) + self.rng.normal(0, 0.1, 2), id=0,
+                              quality=1.0, radius_px=6.0)]
+    messages = []
+    col = SampleCollector(None, [0, 0, 0], ['c1', 'c2'], {c: Flaky() for c in ('c1', 'c2')},
+                          log=messages.append)
+    col.static_spots = None
+    samples = _feed(col, ['c1', 'c2'])
+    assert len(samples) == 2 and all(len(s.observations) == 2 for s in samples)
+    failed = col.counts['detector_error']
+    assert failed > 4 and col.counts['detections'] + failed == col.counts['frames_still']
+    said = [m for m in messages if 'detector failed' in m]
+    assert 1 <= len(said) < failed and 'ValueError' in said[0]
+
+
 def test_why_few_samples_names_the_missing_joints_and_other_causes():
     from armcal_ros.frontend.collector import why_few_samples
     text = why_few_samples({'joint_states': 100, 'joint_state_missing_joint': 100,

@@ -358,6 +358,38 @@ def test_a_smaller_ball_after_a_bigger_one_is_found_again(rng):
     assert np.mean(found) > 0.9, np.mean(found)
 
 
+def test_a_difference_without_a_size_does_not_end_the_search(rng, monkeypatch):
+    """
+    Where |frame - scene| stands out in a pixel only, the fit starts from the blob's size.
+
+    Its moments then have no size (0), and a start radius of 0 raised out of the detector and
+    ended a whole `armcal calibrate` run on a lamp-lit recording with a textured scene.
+    """
+    from armcal_ros.frontend.detectors import sphere
+    scene = _cluttered_scene(rng)
+    det = SphereDetector(centre='shaded')
+    spots, per = _dwells(rng, 10, 10)
+    real = sphere._moments
+    sizeless = []
+
+    def moments(patch, u0, v0):
+        got = real(patch, u0, v0)
+        if got is None or len(sizeless) % 2:
+            return got
+        sizeless.append(1)
+        return got[0], 0.0
+    monkeypatch.setattr(sphere, '_moments', moments)
+    found = []
+    for k, c in enumerate(spots):
+        ball, cover = render_lit_ball(c, 6.0, light=(0.3, -0.8, -0.5))
+        view = ball + (1.0 - cover) * scene
+        for _ in range(per):
+            d = det.detect(quantise(view, rng, noise=2.0))
+            if k >= 4:
+                found.append(bool(d) and np.linalg.norm(d[0].uv - c) < 0.5)
+    assert sizeless and np.mean(found) > 0.9, (len(sizeless), np.mean(found))
+
+
 def _shifted(image, shift):
     """Return ``image`` with its content moved by ``shift`` (px; sub-pixel, edges repeated)."""
     M = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])

@@ -325,8 +325,15 @@ class SampleCollector:
         self.image_sizes[camera] = (w, h)
         if typical is None:
             self._typical_bytes[camera] = max(nbytes, 1)
-        dets = (self.detectors[camera].detect(image) if fit
-                else self.detectors[camera].detect(image, fit=False))
+        try:
+            dets = (self.detectors[camera].detect(image) if fit
+                    else self.detectors[camera].detect(image, fit=False))
+        except Exception as exc:  # noqa: B902 - one frame, not the recording
+            # A detector's failure on one frame (a fit started from a degenerate blob) costs
+            # that frame, counted and said once, not every sample of the stream after it.
+            self._count('detector_error', f'{camera}: the detector failed on a frame '
+                        f'(skipped): {type(exc).__name__}: {exc}')
+            return ()
         if self.board is not None and len(self.board.points) == 1:
             # A point marker as a one-point target: whatever its id, a detection is point 0.
             dets = [replace(d, id=0) for d in dets]

@@ -454,7 +454,9 @@ class SphereDetector(Detector):
             # where lit: a crescent whose moments start a fit off.  Where it differs from the
             # scene, either way, is its whole disc.
             got = _moments(np.abs(patch), u0, v0)
-            if got is not None:
+            # A difference that stands out in a pixel or two has no size to start from (a
+            # start radius of 0 ended a whole `armcal calibrate` run): the blob's then.
+            if got is not None and got[1] >= self.min_radius_px:
                 at, size = got
         own = math.sqrt(max(size ** 2 - 4.0 * sigma0 ** 2, 0.25 * size ** 2))
         radius0 = max(own, hint)
