@@ -115,7 +115,10 @@ class SphereDetector(Detector):
     (the first ~33 images of a camera are searched as they are) is broken.  A camera that is
     knocked sees its scene shifted by pixels: every ``SCENE_CHECK_EVERY``-th image is compared
     with the scene, and a shift that explains their difference moves the scene with the
-    camera, which then learns it again from new images (``_follow_camera``).
+    camera, which then learns it again from new images (``_follow_camera``).  An
+    auto-exposure or gain step scales the whole frame: each frame's exposure against the scene
+    (``exposure``, ``_exposure_of``) scales the scene before it is subtracted, and the images
+    kept for it are stored at its own exposure.
     """
 
     #: How the centre is measured (class docstring).
