@@ -282,6 +282,17 @@ def test_the_scale_follows_the_recent_statistics_but_not_the_latest():
     assert low.scale(name) == 3.0
 
 
+def _views_of(new, X, measured, uvs, rng):
+    """Return the views all three cameras saw, camera ``new.name`` as ``new`` sees them."""
+    views = []
+    for i in range(len(X)):
+        if new.name in uvs[i] and len(uvs[i]) == 3:
+            obs = dict(uvs[i])
+            obs[new.name] = new.project(X[i:i + 1])[0] + rng.normal(0, PIXEL_SIGMA, 2)
+            views.append(View(i, measured[i], obs))
+    return views
+
+
 def test_a_move_along_the_axis_is_not_called_a_lens_change():
     """
     A pose change that the focal length could partly absorb is a pose change (F test).
@@ -301,12 +312,7 @@ def test_a_move_along_the_axis_is_not_called_a_lens_change():
     refocused.fx, refocused.fy = 1.05 * cam.fx, 1.05 * cam.fy
     rng = np.random.default_rng(11)
     for new, what in ((moved, 'pose'), (refocused, 'lens')):
-        views = []
-        for i in range(len(X)):
-            if cam.name in uvs[i] and len(uvs[i]) == 3:
-                obs = dict(uvs[i])
-                obs[cam.name] = new.project(X[i:i + 1])[0] + rng.normal(0, PIXEL_SIGMA, 2)
-                views.append(View(i, measured[i], obs))
+        views = _views_of(new, X, measured, uvs, rng)
         assert size_change(model, cam.name, views[:100])[0] == what
 
 
@@ -329,12 +335,7 @@ def test_the_monitors_refits_free_the_focal_length_only_where_the_views_ask_for_
     refocused.fx, refocused.fy = 1.05 * cam.fx, 1.05 * cam.fy
     rng = np.random.default_rng(12)
     for new, focal in ((moved, 0.0), (refocused, 5.0)):
-        views = []
-        for i in range(len(X)):
-            if cam.name in uvs[i] and len(uvs[i]) == 3:
-                obs = dict(uvs[i])
-                obs[cam.name] = new.project(X[i:i + 1])[0] + rng.normal(0, PIXEL_SIGMA, 2)
-                views.append(View(i, measured[i], obs))
+        views = _views_of(new, X, measured, uvs, rng)
         fit = mon._refit(cam.name, views[:40], mon.current_scales())
         assert fit.explains
         assert fit.focal_percent == pytest.approx(focal, abs=0.5 if focal else 0.0)

@@ -258,9 +258,11 @@ class SphereDetector(Detector):
         if not moved and self._calls < self._last_keep + self.SCENE_FORCE * every:
             return
         # Kept at the scene's own exposure, so that a step in it does not split the median.
-        ref = self._scene if self._scene is not None else (
-            self._scene_frames[-1] if self._scene_frames else None)
-        g = 1.0 if ref is None else self._exposure_of(gray, ref)
+        if self._scene_now is not None:
+            g = self.exposure                  # measured against the scene in detect()
+        else:
+            ref = self._scene_frames[-1] if self._scene_frames else None
+            g = 1.0 if ref is None else self._exposure_of(gray, ref)
         kept = gray.copy() if g == 1.0 else _scaled(gray, 1.0 / g)
         self._scene_frames = (self._scene_frames + [kept])[-self.SCENE_FRAMES:]
         self._kept_uv = None if uv is None else uv.copy()
