@@ -29,6 +29,7 @@ from armcal_ros.core.change import (ARM_SIGMA_FLOOR, ChangeEvent, ChangeMonitor,
                                     ChangeSettings, CONFIRM_OBSERVATIONS, joint_subset,
                                     ONSET_SLACK, PredictionModel, reference_scales,
                                     size_change, View)
+from armcal_ros.core.kinematic_prior import rigid_motion_jacobian
 from armcal_ros.io.calib_files import atomic_write_text
 
 CHANGES_FILE = 'changes.json'
@@ -128,8 +129,8 @@ class ChangeTracker:
 
     # -- the predictor ---------------------------------------------------------------------
     def build_monitor(self, calibration, arrays, arm_sigma,
-                      parameter_covariance=None, joint_covariance=None
-                      ) -> Optional[ChangeMonitor]:
+                      parameter_covariance=None, joint_covariance=None,
+                      prediction=None) -> Optional[ChangeMonitor]:
         """
         Return a monitor of an accepted calibration, scaled on the samples it was solved on.
 
@@ -138,7 +139,8 @@ class ChangeTracker:
         ([(camera, parameter)], C) over all of them with their correlations (what the
         leave-one-out prediction propagates, :func:`~armcal_ros.core.change.agreement`).  Built
         outside the engine's lock (the scales take a fraction of a second); the engine swaps it
-        in.
+        in.  ``prediction`` (an :class:`ArmPrediction`) predicts where the arm really is at a new
+        view; without it the arm's measured point serves, with ``arm_sigma`` its error.
         """
         if not self.enabled or calibration is None:
             return None
@@ -154,7 +156,8 @@ class ChangeTracker:
         if not cams:
             return None
         arm = max(float(arm_sigma), ARM_SIGMA_FLOOR)
-        points, obs = per_point(arrays, limit=REFERENCE_SAMPLES)
+        points, obs = per_point(arrays, limit=REFERENCE_SAMPLES,
+                                points=None if prediction is None else prediction.own)
         # The scale is calibrated on the samples the cameras were fitted to, whose residuals
         # the fit has pulled in: there the parameters' uncertainty does not show, so it is
         # left out of the scale and added for the new views only.
@@ -162,7 +165,9 @@ class ChangeTracker:
         model = PredictionModel(cams, sig, arm, {k: v for k, v in
                                                  (parameter_covariance or {}).items()
                                                  if k in cams},
-                                joint_subset(joint_covariance, cams))
+                                joint_subset(joint_covariance, cams),
+                                0.0 if prediction is None else prediction.model_sigma,
+                                prediction)
         return ChangeMonitor(model, scales, self.settings)
 
     def adopt(self, monitor: Optional[ChangeMonitor]):
@@ -195,11 +200,11 @@ class ChangeTracker:
             uvs[n], extra[n] = self._as_solved(n, o, sample.point_nominal)
         stamps = [o.stamp_ns for o in sample.observations.values() if o.stamp_ns]
         stamp = min(stamps) if stamps else sample.stamp_ns
-        event = self.monitor.observe(sample.point_nominal, uvs, stamp, extra)
+        event = _observe(self.monitor, sample, uvs, stamp, extra)
         pending = self.pending
         if pending is None:
             return event
-        newer = pending.observe(sample.point_nominal, uvs, stamp, extra)
+        newer = _observe(pending, sample, uvs, stamp, extra)
         if event is not None:
             return event
         if newer is not None or not self.monitor.busy or (
@@ -339,16 +344,26 @@ class ChangeTracker:
                 self._sizing[name] = (rec, model, 0)
         return [(name, rec, model) for name, (rec, model, _) in self._sizing.items()]
 
-    def size(self, jobs, arrays):
+    def size(self, jobs, arrays, joints=None):
         """
         Refit each job's camera to its views in ``arrays``; return (camera, record, result).
 
         ``result`` is (what, fit, views used) or None; :meth:`apply_sizes` records them.
+        ``joints`` are the joint angles of each of the arrays' points (or None): a model
+        that predicts the arm (``arm_prediction``) is given the arm where it predicts it.
         """
         points, obs = per_point(arrays)
+        joints = [None] * len(points) if joints is None else joints
         out = []
         for name, rec, model in jobs:
-            views = [View(0, X, uvs) for X, uvs in zip(points, obs) if name in uvs]
+            views = []
+            for X, uvs, q in zip(points, obs, joints):
+                if name not in uvs:
+                    continue
+                got = (X, None) if model.arm_prediction is None else \
+                    model.arm_prediction(X, q)
+                if got is not None:
+                    views.append(View(0, got[0], uvs, arm_design=got[1]))
             try:
                 what, fit = size_change(model, name, views[:SIZING_VIEWS],
                                         false_alarm=self.settings.false_alarm)
@@ -410,16 +425,106 @@ class ChangeTracker:
         return len(records)
 
 
-def per_point(arrays, limit=None):
-    """Return (points (N, 3), [name -> uv (2,)] per point) of a store's point-target arrays."""
+def _observe(monitor, sample, uvs, stamp, extra):
+    """Test ``sample`` with ``monitor`` at the arm's predicted point (untested without one)."""
+    arm = monitor.model.arm_prediction
+    if arm is None:
+        return monitor.observe(sample.point_nominal, uvs, stamp, extra)
+    got = arm(sample.point_nominal, sample.q)
+    if got is None:
+        return None
+    return monitor.observe(got[0], uvs, stamp, extra, got[1])
+
+
+class ArmPrediction:
+    """
+    Where the arm really is at a new view, by the accepted calibration's kinematic model.
+
+    The kinematic models estimate the arm's error parameters dp (:mod:`~armcal_ros.core.priors`:
+    X_i = X^_i + J_p(q_i) diag(sigma_p) g + ...): a correction the arm's geometry carries to
+    any configuration, seen or not.  A new view's arm point is X^ + A g with A = J_p(q)
+    diag(sigma_p), and the change test fuses it at the arm error ``sigma`` (m per axis): the
+    RMS over the calibration's own points of what the kinematic part leaves (a field beside it
+    in ``hybrid``, the points' own noise), the uncertainty of g being propagated with its
+    correlations with the cameras (the joint covariance's :data:`~armcal_ros.core.change.ARM`
+    rows).  With the measured point and the size of the correction instead, two cameras and
+    an arm known to millimetres predict each other loosely, and a change in either camera is
+    explained equally by refitting the other.  A field's correction (``correlated``, the
+    field of ``hybrid``) is a function of where the marker is, not of the arm's
+    configuration; carried to a configuration not seen it can be off by as much as the
+    correction itself (measured on a simulated UR5 with kinematic errors: a lattice field's
+    prediction at 0.1 mm raised a false arm alarm), so it is not used.
+
+    ``model_sigma`` is the correction's own uncertainty per axis, for the fusions that take
+    the arm on its own (a refit of one camera to points fused from the arm and the others):
+    the RMS over the own points of A g's spread once a rigid motion of all of them is taken
+    out, Cov = P A Cov(g) A^T P with P the projection off the span of the rigid motions
+    (:func:`~armcal_ros.core.kinematic_prior.rigid_motion_jacobian`).  The refitted camera's
+    new pose absorbs such a motion; with it left in, the spread holds the frame the arm fixes
+    only to its own accuracy (about 1 mm on the UR5 cell at every sample count), which weighs
+    the arm far below what it knows relative to the cameras.  ``slice`` is where g sits among
+    the adjustment's global parameters.
+
+    ``own`` (N, 3) are the calibration's own points so predicted.  ``kinematics(Q (1, n))``
+    returns the marker's KinematicData at a new view, ``shift(jacobian)`` (1, 3) moves a
+    measured point to the marker's estimated place on its link (or None).  Calling it with a
+    view's measured point and joint angles returns (point (3,), design (3, G)), or None when
+    the view has no joint angles.
+    """
+
+    def __init__(self, adjustment, points, kinematics_data, kinematics, shift=None):
+        pr = adjustment.prior
+        if pr is None or 'kinematic' not in getattr(pr, 'global_slices', {}) or \
+                kinematics_data is None or kinematics is None or \
+                adjustment.global_parameters is None or adjustment.global_covariance is None:
+            raise ValueError('an arm prediction needs an adjustment with a kinematic model')
+        self.kinematics, self.shift = kinematics, shift
+        self.slice = pr.global_slices['kinematic']
+        self.scale = pr.kinematics.sigma * pr.settings.kinematic_scale
+        self.g = np.asarray(adjustment.global_parameters, float)[self.slice]
+        points = np.asarray(points, float)
+        self.own = points + kinematics_data.jacobian @ (self.scale * self.g)
+        d = np.asarray(adjustment.points, float) - self.own
+        self.sigma = float(np.sqrt(np.mean(np.sum(d * d, axis=1)) / 3.0)) if len(d) else 0.0
+        # Over a few hundred of the own points: a median within a few per cent, at a cost
+        # that does not grow with the session.
+        n = len(points)
+        keep = np.linspace(0, n - 1, min(n, REFERENCE_SAMPLES)).round().astype(int)
+        A = kinematics_data.jacobian[keep] * self.scale[None, None, :]
+        A = A.reshape(3 * len(keep), -1)
+        Cg = np.asarray(adjustment.global_covariance, float)[self.slice, self.slice]
+        R = rigid_motion_jacobian(points[keep]).reshape(3 * len(keep), 6)
+        PA = A - R @ np.linalg.lstsq(R, A, rcond=None)[0]
+        var = np.einsum('ig,gh,ih->', PA, Cg, PA) / max(1, PA.shape[0])
+        self.model_sigma = float(np.sqrt(max(float(var), 0.0))) if n else 0.0
+
+    def __call__(self, point, q):
+        """Return (point (3,), design (3, G)) of a view at ``point`` with joints ``q``, or None."""
+        if q is None:
+            return None
+        X = np.asarray(point, float).reshape(1, 3)
+        jac = self.kinematics(np.asarray(q, float).reshape(1, -1)).jacobian
+        if self.shift is not None:
+            X = X + self.shift(jac)
+        A = jac[0] * self.scale[None, :]
+        return X[0] + A @ self.g, A
+
+
+def per_point(arrays, limit=None, points=None):
+    """
+    Return (points (N, 3), [name -> uv (2,)] per point) of a store's point-target arrays.
+
+    ``points`` (N, 3) replaces the arrays' measured points (the arm's predicted ones).
+    """
     n = len(arrays.points)
+    points = arrays.points if points is None else np.asarray(points, float)
     keep = np.arange(n)
     if limit is not None and n > limit:
         keep = np.linspace(0, n - 1, limit).round().astype(int)
     obs = [dict() for _ in range(n)]
     for c, p, uv in zip(arrays.camera_index, arrays.point_index, arrays.uv):
         obs[p][arrays.camera_names[c]] = uv
-    return arrays.points[keep], [obs[i] for i in keep]
+    return points[keep], [obs[i] for i in keep]
 
 
-__all__ = ['ChangeTracker', 'ChangeRecord', 'CHANGES_FILE', 'per_point']
+__all__ = ['ArmPrediction', 'ChangeTracker', 'ChangeRecord', 'CHANGES_FILE', 'per_point']

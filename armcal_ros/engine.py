@@ -41,11 +41,11 @@ from typing import Callable, Dict, List, Optional, Tuple
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from armcal_ros.change_tracking import ChangeTracker, CHANGES_FILE
+from armcal_ros.change_tracking import ArmPrediction, ChangeTracker, CHANGES_FILE
 from armcal_ros.core.adjustment import Observations, SolverSettings
 from armcal_ros.core.board_calibration import BoardData, calibrate_board, MountSettings
 from armcal_ros.core.calibration import calibrate, CalibrationResult, CameraSpec
-from armcal_ros.core.change import ChangeSettings
+from armcal_ros.core.change import ARM, ChangeSettings
 from armcal_ros.core.initialisation import initialise_with_intrinsics
 from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
 from armcal_ros.core.image_noise import pooled_pixel_sigma
@@ -665,7 +665,7 @@ class CalibrationEngine:
             self._remember_auto_choice(result, n)
         outcome = self._judge(result, n, time.perf_counter() - t0)
         if outcome.accepted:
-            self._follow_changes(outcome, arrays, points)
+            self._follow_changes(outcome, arrays, points, kw['kinematics'], place)
         if outcome.accepted and place is not None:
             place = tip_place(result.adjustment, place)
             if place is not None:
@@ -735,13 +735,20 @@ class CalibrationEngine:
                 initial[name] = got.camera
         return initial
 
-    def _follow_changes(self, outcome, arrays, points):
-        """After an accepted solve: close recalibrations, rebuild the change monitor."""
+    def _follow_changes(self, outcome, arrays, points, kin=None, place=None):
+        """
+        After an accepted solve: close recalibrations, rebuild the change monitor.
+
+        ``kin`` is the solve's KinematicData, ``place`` the marker's place on its link it was
+        solved at (a point marker placed by a kinematic model; None otherwise).
+        """
         cal = outcome.calibration
         adj = outcome.result.adjustment
-        arm = 0.0
+        arm, predictor = 0.0, None
         if adj is not None and adj.points is not None and len(adj.points) == len(points):
-            arm = float(np.sqrt(np.mean(np.sum((adj.points - points) ** 2, axis=1)) / 3.0))
+            predictor = self._arm_prediction(adj, points, kin, place)
+            arm = (predictor.sigma if predictor is not None else float(
+                np.sqrt(np.mean(np.sum((adj.points - points) ** 2, axis=1)) / 3.0)))
         cal.hyperparameters['arm_sigma_mm'] = 1e3 * arm
         blocks, joint, rows = {}, None, []
         if adj is not None and adj.covariance is not None:
@@ -752,17 +759,44 @@ class CalibrationEngine:
                     blocks[cam] = ([names[i][len(cam) + 1:] for i in idx],
                                    adj.covariance[np.ix_(idx, idx)])
                     rows.extend((i, cam) for i in idx)
-            C = adj.covariance[np.ix_([i for i, _ in rows], [i for i, _ in rows])]
+            idx = [i for i, _ in rows]
+            C = adj.covariance[np.ix_(idx, idx)]
+            labels = [(cam, names[i][len(cam) + 1:]) for i, cam in rows]
+            if predictor is not None and adj.global_cross_covariance is not None:
+                # The arm's model's parameters beside the cameras': relative to the cameras
+                # the arm is known far better than on its own (ArmPrediction).
+                X = adj.global_cross_covariance[idx][:, predictor.slice]
+                C = np.block([[C, X], [X.T, adj.global_covariance[predictor.slice,
+                                                                  predictor.slice]]])
+                labels += [(ARM, f'g{k}') for k in range(X.shape[1])]
             if rows and np.all(np.isfinite(C)):
-                joint = ([(cam, names[i][len(cam) + 1:]) for i, cam in rows], C)
+                joint = (labels, C)
         with self._lock:
             jobs = self.changes.accepted(cal)
-        sized = self.changes.size(jobs, arrays)
-        monitor = self.changes.build_monitor(cal, arrays, arm, blocks, joint)
+            by_id = {s.id: s.q for s in self.store.samples}
+        sized = self.changes.size(jobs, arrays, [by_id.get(i) for i in arrays.sample_ids])
+        monitor = self.changes.build_monitor(cal, arrays, arm, blocks, joint, predictor)
         with self._lock:
             self.changes.apply_sizes(sized)
             self.changes.light_shifts = dict(self.light_pooling)
             self.changes.adopt(monitor)
+
+    def _arm_prediction(self, adj, points, kin, place):
+        """Return the :class:`ArmPrediction` of an accepted adjustment (None if it cannot)."""
+        kinematics, shift = self.kinematics_fn, None
+        if place is not None and kinematics is not None:
+            m0 = np.asarray(self.settings.point_place_guess, float)
+            known = np.asarray(place, float)
+            kinematics = (lambda Q, f=self.kinematics_fn, p=known: f(Q, p))
+            names = list(kin.names) if kin is not None else []
+            if not all(f'tip/t{a}' in names for a in 'xyz'):
+                return None
+            cols = [names.index(f'tip/t{a}') for a in 'xyz']
+            shift = (lambda jac, c=cols, d=known - m0: jac[:, :, c] @ d)
+        try:
+            return ArmPrediction(adj, points, kin, kinematics, shift)
+        except ValueError:
+            return None
 
     def _reference_for(self, specs, points, obs, initial, kin, solver, n, arrays, sel):
         """

@@ -200,6 +200,9 @@ class AdjustmentResult:
     log_evidence: float = float('nan')
     global_parameters: Optional[np.ndarray] = None
     global_covariance: Optional[np.ndarray] = None
+    #: The covariance between the camera parameters (rows, as ``covariance``) and the global
+    #: parameters (columns, as ``global_covariance``).
+    global_cross_covariance: Optional[np.ndarray] = None
     kinematic_errors: Optional[Dict[str, float]] = None
     kinematic_std: Optional[Dict[str, float]] = None
     prior: Optional[PointPrior] = None
@@ -909,6 +912,7 @@ def adjust(cameras: Sequence[Camera], measured, obs: Observations,
     if n_global:
         result.global_parameters = g
         result.global_covariance = full_cov[C:, C:]
+        result.global_cross_covariance = full_cov[:C, C:]
         if 'kinematic' in prior.global_slices:
             sl = prior.global_slices['kinematic']
             sig = prior.kinematics.sigma * prior_settings.kinematic_scale

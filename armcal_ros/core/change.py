@@ -28,10 +28,15 @@ one another, and per-camera blocks would credit every prediction with the frame'
 Leaving camera c out makes r_c independent of c's own error; the other cameras make it
 independent of the arm's error along their rays (with three cameras the arm hardly matters).
 s_o is each camera's image noise from its residuals; s_arm the RMS per axis of what the
-adjustment corrected the arm's points by (at least :data:`ARM_SIGMA_FLOOR`).  The model is then
-calibrated on the calibration's own samples: k_c^2 = median(d_c^2) / (2 ln 2) (the median of
-chi^2 with 2 degrees of freedom), so d_c^2 / k_c^2 is chi^2(2) when nothing has changed, whatever
-the noise model left out (a robust scale; one bad detection cannot move it).
+adjustment corrected the arm's points by (at least :data:`ARM_SIGMA_FLOOR`).  With a kinematic
+model the engine gives X^ as the model predicts it, X^ + A g (A = J_p(q) diag(sigma_p)), s_arm as
+what the model leaves at its own samples, and the model's parameters g in the joint covariance
+(rows :data:`ARM`) with their correlations with the cameras: each prediction then carries what
+the model does not know about the arm relative to the cameras (:func:`_innovation_batch`).
+The predictor is then calibrated on the calibration's own samples: k_c^2 = median(d_c^2) /
+(2 ln 2) (the median of chi^2 with 2 degrees of freedom), so d_c^2 / k_c^2 is chi^2(2) when
+nothing has changed, whatever the noise model left out (a robust scale; one bad detection
+cannot move it).
 
 The scale then follows the camera's recent statistics (:class:`ChangeMonitor`): new views are
 predicted a little worse than the calibration's covariance says wherever the images hold errors
@@ -137,6 +142,10 @@ LAG_VIEWS = 12
 #: limit) repeats one error, and three copies of one bad view must not pass for three views.
 #: The store's default min_sample_spacing, for the same reason.
 SAME_PLACE = 0.005
+#: The arm's rows in a joint covariance: (ARM, 'g0'), (ARM, 'g1'), ... are the whitened global
+#: parameters g of the arm's error model (the arm's point at a view is X^ + A g, A the view's
+#: design); no camera can be called this (ROS names have no angle brackets).
+ARM = '<arm>'
 
 
 @dataclass
@@ -216,6 +225,10 @@ class PredictionModel:
 
     cameras: Dict[str, Camera]
     sigma_px: Dict[str, float]
+    #: The arm's error per axis (m) beyond what its model predicts: with a joint covariance
+    #: that has the arm's rows (:data:`ARM`), the model's own uncertainty is propagated with
+    #: its correlations with the cameras; elsewhere ``arm_model_sigma`` (m per axis, the
+    #: model's prediction on its own) is added to it.
     arm_sigma: float
     #: Per camera (its parameters' names - fx, fy, cx, cy, the fitted distortion terms, wx, wy,
     #: wz, tx, ty, tz - and their covariance): what the calibration does not know adds
@@ -226,6 +239,12 @@ class PredictionModel:
     #: leave-one-out innovation propagates it through the prediction (:func:`innovation`)
     #: instead of adding each camera's block on its own.
     joint_covariance: Optional[tuple] = None
+    arm_model_sigma: float = 0.0
+    #: Where the arm is at a view: a callable (measured point (3,), joint angles or None) ->
+    #: (point (3,), design (3, G)) or None (the engine's ArmPrediction), or None for the
+    #: measured point itself.  Kept with the model so that a change is later sized against
+    #: the arm the test found it with.
+    arm_prediction: Optional[object] = None
 
     def __post_init__(self):
         for name, s in self.sigma_px.items():
@@ -247,15 +266,20 @@ class PredictionModel:
             {n: self.cameras[n] for n in rest}, {n: self.sigma_px[n] for n in rest},
             self.arm_sigma,
             {n: v for n, v in self.parameter_covariance.items() if n != camera},
-            joint_subset(self.joint_covariance, rest))
+            joint_subset(self.joint_covariance, rest), self.arm_model_sigma,
+            self.arm_prediction)
 
 
 def joint_subset(joint, cameras):
-    """Return a joint covariance ([(camera, parameter)], C) restricted to ``cameras`` (or None)."""
+    """
+    Return a joint covariance ([(camera, parameter)], C) restricted to ``cameras`` (or None).
+
+    The arm's rows (:data:`ARM`) are kept.
+    """
     if joint is None:
         return None
     names, C = joint
-    keep = [i for i, (c, _) in enumerate(names) if c in cameras]
+    keep = [i for i, (c, _) in enumerate(names) if c in cameras or c == ARM]
     return [names[i] for i in keep], np.asarray(C)[np.ix_(keep, keep)]
 
 
@@ -354,7 +378,7 @@ def fuse(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=None,
 
 
 def agreement(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=None,
-              use_arm=True, extra=None):
+              use_arm=True, extra=None, arm_design=None):
     """
     Return (chi^2, dof) of the arm and the cameras ``uvs`` agreeing on one point, or None.
 
@@ -369,7 +393,10 @@ def agreement(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=Non
     chi^2 = e^T Cov(e)^+ e over its rank (2 m with the arm, 2 m - 3 without).  As in
     :func:`_innovation_batch`, the calibration's uncertainty counts with its correlations, so
     the cameras' common freedom (the frame the arm fixes only to its own accuracy) is not
-    mistaken for room to disagree.  ``extra``: as for :func:`fuse`.
+    mistaken for room to disagree.  ``extra``: as for :func:`fuse`.  With the arm's rows in
+    the joint covariance and the view's ``arm_design`` A (3, G), the arm's point X^ + A g
+    moves with its model's parameters g: its rows of G are -A (the cameras' rows hold
+    +J_theta, the negative of their residuals' derivative, and the sign must agree).
     """
     joint = model.joint_covariance
     extra = extra or {}
@@ -402,6 +429,8 @@ def agreement(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], scales=Non
             G[sl, index[n][1]] = _parameter_jacobian(pj, index[n][0])[0]
     if use_arm:
         e[-3:], F[-3:], noise[-3:] = X0 - X[0], np.eye(3), model.arm_sigma ** 2
+        if arm_design is not None and ARM in index:
+            G[-3:, index[ARM][1]] = -np.asarray(arm_design, float).reshape(3, -1)
     P = np.eye(rows) - F @ cov[0] @ F.T / noise[None, :]
     V = P @ (np.diag(noise) + G @ np.asarray(C, float) @ G.T) @ P.T
     w, U = np.linalg.eigh(0.5 * (V + V.T))
@@ -428,10 +457,12 @@ def _fuse_batch(model: PredictionModel, X0, uv, seen, scales=None, use_arm=True,
 
     Returns (X (N, 3), H^-1 (N, 3, 3), chi^2 (N,), ok (N,)); a point whose information matrix
     is singular or not finite is not ok (its entries are NaN).  Without ``parameters`` the
-    cameras are weighted by their image noise alone.
+    cameras are weighted by their image noise alone and the arm by ``arm_sigma`` alone (the
+    calibration's uncertainty is then propagated by the caller).
     """
     N = X0.shape[0]
-    w_arm = 1.0 / model.arm_sigma ** 2 if use_arm else 0.0
+    arm_var = model.arm_sigma ** 2 + (model.arm_model_sigma ** 2 if parameters else 0.0)
+    w_arm = 1.0 / arm_var if use_arm else 0.0
     X = X0.copy()
     ok = np.ones(N, bool)
 
@@ -465,7 +496,7 @@ def _fuse_batch(model: PredictionModel, X0, uv, seen, scales=None, use_arm=True,
     return X, cov, chi, ok
 
 
-def _innovation_batch(model: PredictionModel, left, X0, uv, seen, extra=None):
+def _innovation_batch(model: PredictionModel, left, X0, uv, seen, extra=None, arm_design=None):
     """
     Return camera ``left``'s leave-one-out innovations over N samples: r (N, 2), S (N, 2, 2), d^2.
 
@@ -483,7 +514,10 @@ def _innovation_batch(model: PredictionModel, left, X0, uv, seen, extra=None):
     arm fixes the frame only to its own accuracy, and the frame moves them all together): the
     blocks alone would credit every prediction with the frame's uncertainty too.  d^2 is NaN
     where the fusion is singular or the point is behind the camera.  ``extra`` maps cameras
-    to (N,) variances added to their image noise (:class:`View`).
+    to (N,) variances added to their image noise (:class:`View`).  The arm's point X^ + A g
+    moves with its model's parameters g when the joint covariance has them (:data:`ARM`)
+    and ``arm_design`` (N, 3, G) gives each view's A: dX~/dg = H^-1 A / s_arm^2, so
+    g_arm = -J_c H^-1 A / s_arm^2.
     """
     joint = model.joint_covariance
     extra = extra or {}
@@ -515,37 +549,43 @@ def _innovation_batch(model: PredictionModel, left, X0, uv, seen, extra=None):
                 g[np.ix_(m, [0, 1], index[n][1])] += np.einsum(
                     'n,nal,nbl,nbp->nap', np.broadcast_to(w, (int(np.sum(m)),)), JH[m],
                     pj.d_point, Jt)
+            if arm_design is not None and ARM in index:
+                g[:, :, index[ARM][1]] -= np.einsum('nal,nlg->nag', JH, np.asarray(
+                    arm_design, float)) / model.arm_sigma ** 2
             S = S + np.einsum('nap,pq,nbq->nab', g, np.asarray(C, float), g)
         d2 = np.einsum('na,nab,nb->n', r, _inv2(S), r)
     d2[~ok | ~(depth > 0) | ~np.isfinite(d2)] = np.nan
     return r, S, d2
 
 
-def innovation(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], camera, extra=None):
+def innovation(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], camera, extra=None,
+               arm_design=None):
     """
     Return (r (2,), S (2, 2), d^2) of ``camera``'s observation predicted from the rest.
 
     See the module docstring and :func:`_innovation_batch`; None when the camera is not in the
-    model or not in ``uvs``, or when the rest cannot predict it.  ``extra``: as in
-    :class:`View`.
+    model or not in ``uvs``, or when the rest cannot predict it.  ``extra``, ``arm_design``: as
+    in :class:`View`.
     """
     if camera not in model.cameras or camera not in uvs:
         return None
     names = [n for n in uvs if n in model.cameras]
     uv = {n: np.asarray(uvs[n], float).reshape(1, 2) for n in names}
     r, S, d2 = _innovation_batch(model, camera, np.asarray(X0, float).reshape(1, 3), uv,
-                                 {n: np.ones(1, bool) for n in names}, _batch_extra(extra, 1))
+                                 {n: np.ones(1, bool) for n in names}, _batch_extra(extra, 1),
+                                 None if arm_design is None else
+                                 np.asarray(arm_design, float)[None])
     if not np.isfinite(d2[0]):
         return None
     return r[0], S[0], float(d2[0])
 
 
 def statistics(model: PredictionModel, X0, uvs: Dict[str, np.ndarray],
-               extra=None) -> Dict[str, float]:
+               extra=None, arm_design=None) -> Dict[str, float]:
     """Return d^2 of every modelled camera in ``uvs`` (see :func:`innovation`)."""
     out = {}
     for name in uvs:
-        got = innovation(model, X0, uvs, name, extra)
+        got = innovation(model, X0, uvs, name, extra, arm_design)
         if got is not None and np.isfinite(got[2]):
             out[name] = got[2]
     return out
@@ -561,7 +601,8 @@ def _inv2(S):
         return out / det[:, None, None]
 
 
-def statistics_batch(model: PredictionModel, points, observations) -> Dict[str, np.ndarray]:
+def statistics_batch(model: PredictionModel, points, observations,
+                     arm_design=None) -> Dict[str, np.ndarray]:
     """
     Return every modelled camera's d^2 over many samples: name -> (N,), NaN where not seen.
 
@@ -570,6 +611,7 @@ def statistics_batch(model: PredictionModel, points, observations) -> Dict[str, 
     prediction), computed for all samples at once: a per-sample loop spent 0.5 s in Python
     per solve on 300 samples, this one a few milliseconds.  Samples where a fusion is singular
     or the point is behind the camera are NaN, as :func:`statistics` leaves them out.
+    ``arm_design`` (N, 3, G): each sample's arm design (:func:`_innovation_batch`).
     """
     X0 = np.asarray(points, float).reshape(-1, 3)
     N = X0.shape[0]
@@ -583,7 +625,8 @@ def statistics_batch(model: PredictionModel, points, observations) -> Dict[str, 
         if rows.size == 0:
             continue
         _, _, d2 = _innovation_batch(model, left, X0[rows], {n: uv[n][rows] for n in names},
-                                     {n: seen[n][rows] for n in names})
+                                     {n: seen[n][rows] for n in names}, None,
+                                     None if arm_design is None else arm_design[rows])
         full = np.full(N, np.nan)
         full[rows] = d2
         out[left] = full
@@ -639,12 +682,15 @@ class View:
     ``extra`` maps cameras to a variance per axis (px^2) added to that camera's image noise in
     this view alone: what its point is known to beyond the calibration's image noise (a light
     correction carried to a place it was not measured at, see change_tracking.py).
+    ``arm_design`` (3, G): how the arm's point moves with its error model's parameters (the
+    :data:`ARM` rows of the joint covariance), or None.
     """
 
     stamp_ns: int
     X0: np.ndarray
     uvs: Dict[str, np.ndarray]
     extra: Dict[str, float] = field(default_factory=dict)
+    arm_design: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -795,6 +841,27 @@ def size_change(model: PredictionModel, camera, seen, scales=None, false_alarm=1
     return 'pose', held
 
 
+def _rises_later(d2, alpha=CONFIRM_ALPHA) -> bool:
+    """
+    Return True if the misfits ``d2`` (n,) step up after their first view, beyond chance.
+
+    Under one level each d2 is about exponential (chi^2 with 2 degrees of freedom times a
+    scale); the likelihood ratio of a step from mean m1 (views before k) to m2 > m1 (from k on)
+    against one mean m is 2 (n ln m - k ln m1 - (n - k) ln m2), compared with chi^2_1 at
+    ``alpha`` over the splits k = 1 .. n - 1.
+    """
+    x = np.maximum(np.asarray(d2, float), 1e-12)
+    n = x.size
+    if n < 2 or not np.all(np.isfinite(x)):
+        return False
+    m = float(np.mean(x))
+    c = np.cumsum(x)
+    k = np.arange(1, n)
+    m1, m2 = c[:-1] / k, (c[-1] - c[:-1]) / (n - k)
+    lr = 2.0 * (n * np.log(m) - k * np.log(m1) - (n - k) * np.log(m2))
+    return bool(np.any((m2 > m1) & (lr > float(chi2.isf(alpha, 1)))))
+
+
 class ChangeMonitor:
     """
     The sequential test of every camera against a :class:`PredictionModel`.
@@ -855,12 +922,12 @@ class ChangeMonitor:
         return {n: self.scale(n) for n in self.scales}
 
     def observe(self, X0, uvs: Dict[str, np.ndarray], stamp_ns: int,
-                extra: Dict[str, float] = None) -> Optional[ChangeEvent]:
+                extra: Dict[str, float] = None, arm_design=None) -> Optional[ChangeEvent]:
         """
         Test one new sample (arm point ``X0``, name -> uv); return an event or None.
 
         ``extra``: name -> a variance per axis (px^2) added to that camera's image noise in
-        this sample (:class:`View`).
+        this sample; ``arm_design`` (3, G) the arm's design there (:class:`View`).
         """
         if self.paused or not self.model.cameras:
             return None
@@ -870,12 +937,12 @@ class ChangeMonitor:
             return None
         X0 = np.asarray(X0, float).reshape(3)
         extra = {n: float(v) for n, v in (extra or {}).items() if n in uvs and v > 0}
-        seen = View(int(stamp_ns), X0, uvs, extra)
+        seen = View(int(stamp_ns), X0, uvs, extra, arm_design)
         self.recent.append(seen)
         self.tested += 1
         if self.suspect is not None:
             return self._confirm(seen)
-        stats = statistics(self.model, X0, uvs, extra)
+        stats = statistics(self.model, X0, uvs, extra, arm_design)
         if self._place is None or np.linalg.norm(X0 - self._place) >= SAME_PLACE:
             self._place, self._place_terms = X0, {}
         fired = None
@@ -914,8 +981,9 @@ class ChangeMonitor:
         if kind == 'camera':
             # Confirm before declaring: a moved camera's new views are explained by a new
             # pose (and focal length); a burst of bad detections is not.
+            views = [s for s in since if camera in s.uvs]
             self.suspect = dict(camera=camera, onset=onset, statistic=stat, evidence=evidence,
-                                seen=[s for s in since if camera in s.uvs])
+                                seen=views, waited=0)
             return self._confirm(None)
         event = ChangeEvent(kind, camera, onset, int(stamp_ns), stat, self.threshold,
                             len(since), evidence)
@@ -941,6 +1009,7 @@ class ChangeMonitor:
         camera = sus['camera']
         if seen is not None and camera in seen.uvs:
             sus['seen'].append(seen)
+            sus['waited'] += 1
         if len(sus['seen']) < CONFIRM_OBSERVATIONS + ONSET_SLACK:
             return None
         scales = self.current_scales()
@@ -949,7 +1018,8 @@ class ChangeMonitor:
         # point is the split that explains the views best, the views before it by the old
         # camera and those after by the refitted one (at least CONFIRM_OBSERVATIONS of them).
         best, best_cost = 0, float(np.sum(fit.new_d2))
-        for k in range(1, len(sus['seen']) - CONFIRM_OBSERVATIONS + 1):
+        last = len(sus['seen']) - CONFIRM_OBSERVATIONS
+        for k in range(1, last + 1):
             f = self._refit(camera, sus['seen'][k:], scales)
             cost = float(np.sum(fit.old_d2[:k]) + np.sum(f.new_d2))
             if cost < best_cost:
@@ -958,6 +1028,15 @@ class ChangeMonitor:
             sus['seen'] = sus['seen'][best:]
             sus['onset'] = sus['seen'][0].stamp_ns
             fit = self._refit(camera, sus['seen'], scales)
+        if (0 < best == last or _rises_later(fit.old_d2)) and \
+                sus['waited'] < MAX_SUSPECT_VIEWS:
+            # The change point is the latest the search may place, or the old calibration's
+            # misfit rises again after it: the change may have begun later still, and a
+            # refit over views from before it (a rigid refit absorbs a few of them) would
+            # carry them into the new epoch.  One more view lets the search look further;
+            # the patience counts from the CUSUM's firing (a climb may have begun many views
+            # before the change).
+            return None
         if not fit.explains and len(sus['seen']) < MAX_SUSPECT_VIEWS:
             # Not explained yet: wait while the latest views still disagree with the old
             # calibration as a whole (the change may have begun after the climb did).
@@ -995,18 +1074,26 @@ class ChangeMonitor:
         """
         return size_change(self.model, camera, seen, scales, self.settings.false_alarm)[1]
 
-    def _agreement(self, seen: List[View], leave_out=None, use_arm=True, alpha=None):
-        """chi^2 / its quantile at the false-alarm probability, over ``seen`` (nan: untestable)."""
+    def _agreement(self, seen: List[View], leave_out=None, use_arm=True, alpha=None,
+                   raw=False):
+        """
+        chi^2 / its quantile at the false-alarm probability, over ``seen`` (nan: untestable).
+
+        With ``raw``, chi^2 itself.
+        """
         total, dof, scales = 0.0, 0, self.current_scales()
         for s in seen:
             uvs = {n: uv for n, uv in s.uvs.items() if n != leave_out}
-            got = agreement(self.model, s.X0, uvs, scales, use_arm=use_arm, extra=s.extra)
+            got = agreement(self.model, s.X0, uvs, scales, use_arm=use_arm, extra=s.extra,
+                            arm_design=s.arm_design)
             if got is None or got[1] <= 0:
                 continue
             total += got[0]
             dof += got[1]
         if dof == 0:
             return float('nan')
+        if raw:
+            return total
         return total / float(chi2.isf(alpha or self.settings.false_alarm, dof))
 
     def _attribute(self, seen: List[View], fired: str):
@@ -1044,10 +1131,12 @@ class ChangeMonitor:
             # views (but the first few, which may precede the change), and if exactly one
             # refit explains them, it is that one.
             scales = self.current_scales()
+            fits = {}
             for n in ok:
                 views = [v for v in seen if n in v.uvs][ONSET_SLACK:]
                 fit = (self._refit(n, views, scales)
                        if len(views) >= CONFIRM_OBSERVATIONS else None)
+                fits[n] = fit
                 evidence[f'refit {n}'] = fit.ratio if fit is not None else float('nan')
                 if fit is not None and not fit.plausible:
                     evidence[f'refit {n}'] = float('inf')
@@ -1057,6 +1146,18 @@ class ChangeMonitor:
             untried = [n for n in ok if np.isnan(evidence[f'refit {n}'])]
             if len(explained) == 1 and not untried:
                 return 'camera', explained[0], evidence
+            if len(explained) > 1 and not untried:
+                # Each explains the views; they need not explain them equally.  Camera n
+                # changed leaves chi^2 = that of the rest without it + its refit's: the
+                # hypotheses have as many parameters each, so the difference is twice a log
+                # likelihood ratio.
+                totals = {n: self._agreement(seen, leave_out=n, raw=True) +
+                          float(np.sum(fits[n].new_d2)) for n in explained}
+                ranked = sorted(explained, key=lambda n: totals[n])
+                gap = totals[ranked[1]] - totals[ranked[0]]
+                evidence['likelihood ratio (2 ln)'] = gap
+                if gap > 2.0 * log(1.0 / self.settings.false_alarm):
+                    return 'camera', ranked[0], evidence
             evidence['ambiguous'] = float(len(explained) + len(untried) > 1)
         free = evidence['cameras without the arm']
         if not ok and np.isfinite(free) and free <= 1.0:
