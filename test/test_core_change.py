@@ -529,7 +529,8 @@ def test_of_two_cameras_that_each_explain_the_views_the_far_likelier_is_named():
     and either camera refitted explains the views.  Camera n changed leaves chi^2 = that of the
     rest + n's refit; the knocked camera's is lower by 31.8 (twice the log likelihood ratio),
     beyond 2 ln(10^6) = 27.6 at the stated false-alarm rate: it is named.  With the arm at
-    3 mm the gap is 14.5 and nothing is named.
+    3 mm the views disagree as a whole only at 1e-3, not at the false-alarm rate, and
+    nothing is named (the gap, 14.5, would not have named one either).
     """
     mon, views, (c1, c2) = _two_camera_views(2e-3, 0.5)
     kind, camera, evidence = mon._attribute(views, c2)
@@ -540,7 +541,7 @@ def test_of_two_cameras_that_each_explain_the_views_the_far_likelier_is_named():
     mon, views, (c1, c2) = _two_camera_views(3e-3, 0.5)
     kind, camera, evidence = mon._attribute(views, c2)
     assert kind == 'unexplained' and evidence['ambiguous']
-    assert evidence['likelihood ratio (2 ln)'] < 2 * np.log(1e6)
+    assert 1.0 < evidence['all'] and mon._agreement(views) <= 1.0
 
 
 def test_a_marker_that_moved_on_the_arm_is_told_from_a_camera_that_moved():
