@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from armcal_ros.core.change import (agreement, ARM, cap_of, CONFIRM_OBSERVATIONS,
+                                    MAX_SUSPECT_VIEWS,
                                     ChangeMonitor, ChangeSettings, fuse,
                                     innovation, PredictionModel, reference_scales,
                                     _rises_later,
@@ -481,12 +482,39 @@ def test_a_suspect_whose_climb_began_long_before_the_change_is_split_at_the_chan
     mon.suspect = dict(camera=cam.name, onset=stream[0].stamp_ns, statistic=30.0,
                        evidence={}, seen=stream[:15], waited=0)
     event, k = mon._confirm(None), 15
-    while event is None and k < len(stream):
+    while event is None and mon.suspect is not None and k < len(stream):
         event = mon._confirm(stream[k])
         k += 1
-    assert event is not None and event.kind == 'camera'
-    assert event.onset_ns == stream[14].stamp_ns
-    assert k == 14 + CONFIRM_OBSERVATIONS + 1
+    # Let go (its views from the split on agreeing with the old camera; the CUSUM then
+    # starts again on the knocked views) or declared at the knock: never before it.
+    assert event is not None or mon.suspect is None
+    if event is not None:
+        assert event.kind == 'camera' and event.onset_ns == stream[14].stamp_ns
+        assert k == 14 + CONFIRM_OBSERVATIONS + 1
+
+
+@pytest.mark.parametrize('deg', [0.0, 0.5])
+def test_a_suspect_is_declared_changed_only_if_its_views_disagree_with_the_old_camera(deg):
+    """
+    A refit explains views that did not move too: the old camera must also fail on them.
+
+    A suspect of 16 views of a camera that did not move (a weak climb named it) is let go, its
+    CUSUM restarted, with nothing declared; the same views of a camera knocked by 0.5 deg are
+    a change.
+    """
+    cams, X, measured, uvs = _stream(300, 3)
+    cam = cams[1]
+    new = _knock(cam, deg, np.random.default_rng(5)) if deg else cam
+    views = _views_of(new, X, measured, uvs, np.random.default_rng(6))[:16]
+    mon = ChangeMonitor(_model(cams), {c.name: 1.0 for c in cams})
+    mon.suspect = dict(camera=cam.name, onset=views[0].stamp_ns, statistic=30.0,
+                       evidence={}, seen=views, waited=MAX_SUSPECT_VIEWS)
+    event = mon._confirm(None)
+    if deg:
+        assert event is not None and (event.kind, event.camera) == ('camera', cam.name)
+    else:
+        assert event is None and mon.suspect is None and mon.unconfirmed == 1
+        assert cam.name in mon.model.cameras
 
 
 def test_a_step_up_in_the_old_misfits_is_told_from_their_scatter():

@@ -1044,6 +1044,22 @@ class ChangeMonitor:
             if float(np.sum(latest)) > float(chi2.isf(self.settings.false_alarm,
                                                       2 * len(latest))):
                 return None
+        if fit.explains:
+            # A refit explains views that did not move as well as views that did: the
+            # views from the change point on must also disagree with the old camera, as the
+            # test itself sees them (d^2 / k^2 with the joint covariance), at the false-alarm
+            # rate.  Otherwise the climb was a disagreement too weak to be a change.
+            k2 = self.scale(camera)
+            d2 = [statistics(self.model, v.X0, v.uvs, v.extra, v.arm_design).get(camera)
+                  for v in sus['seen']]
+            d2 = np.array([v for v in d2 if v is not None and np.isfinite(v)]) / k2
+            quantile = float(chi2.isf(self.settings.false_alarm, 2 * max(1, d2.size)))
+            if d2.size and float(np.sum(d2)) <= quantile:
+                self.unconfirmed += 1
+                self.suspect = None
+                self.windows[camera][0], self.windows[camera][1] = 0.0, None
+                self._place_terms.pop(camera, None)
+                return None
         stamp = sus['seen'][-1].stamp_ns
         evidence = dict(sus['evidence'])
         evidence['unexplained after refitting the camera'] = fit.ratio
