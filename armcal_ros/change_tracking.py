@@ -46,6 +46,10 @@ SHIFT_ERROR_VIEWS = 20
 #: Views a newer calibration's monitor tests quietly beside a climbing one before it takes
 #: over (:meth:`ChangeTracker.adopt`): as many as a suspect camera is judged on.
 PENDING_VIEWS = CONFIRM_OBSERVATIONS + ONSET_SLACK
+#: Samples a later solve must have added, and kept, before an arm prediction's error at
+#: places it was not fitted to is measured (ArmPrediction.forward_error): 6 points give the
+#: RMS of 18 coordinates, within about a sixth.
+MIN_FORWARD_SAMPLES = 6
 
 
 @dataclass
@@ -497,6 +501,31 @@ class ArmPrediction:
         PA = A - R @ np.linalg.lstsq(R, A, rcond=None)[0]
         var = np.einsum('ig,gh,ih->', PA, Cg, PA) / max(1, PA.shape[0])
         self.model_sigma = float(np.sqrt(max(float(var), 0.0))) if n else 0.0
+
+    def forward_error(self, points, joints, adjusted, new) -> float:
+        """
+        Return the RMS per axis of this prediction at samples a later solve added (m).
+
+        ``points`` (N, 3) measured, ``joints`` their joint angles, ``adjusted`` (N, 3) the
+        later solve's points, ``new`` (N,) bool the samples this prediction was not fitted
+        to.  The later solve's frame differs from this one's by a rigid motion (the arm fixes
+        it only to its own accuracy): it is the one that maps this prediction of the other
+        samples onto theirs (Kabsch).  NaN with fewer than MIN_FORWARD_SAMPLES of either.
+        """
+        got = [self(X, q) for X, q in zip(points, joints)]
+        ok = np.array([g is not None for g in got])
+        new, old = ok & np.asarray(new, bool), ok & ~np.asarray(new, bool)
+        if new.sum() < MIN_FORWARD_SAMPLES or old.sum() < MIN_FORWARD_SAMPLES:
+            return float('nan')
+        pred = np.array([g[0] if g is not None else np.full(3, np.nan) for g in got])
+        adjusted = np.asarray(adjusted, float)
+        ps, qs = pred[old], adjusted[old]
+        pc, qc = ps.mean(axis=0), qs.mean(axis=0)
+        U, _, Vt = np.linalg.svd((ps - pc).T @ (qs - qc))
+        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+        R = Vt.T @ D @ U.T
+        e = adjusted[new] - ((pred[new] - pc) @ R.T + qc)
+        return float(np.sqrt(np.mean(np.sum(e * e, axis=1)) / 3.0))
 
     def __call__(self, point, q):
         """Return (point (3,), design (3, G)) of a view at ``point`` with joints ``q``, or None."""

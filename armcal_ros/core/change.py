@@ -1090,13 +1090,8 @@ class ChangeMonitor:
         """
         return size_change(self.model, camera, seen, scales, self.settings.false_alarm)[1]
 
-    def _agreement(self, seen: List[View], leave_out=None, use_arm=True, alpha=None,
-                   raw=False):
-        """
-        chi^2 / its quantile at the false-alarm probability, over ``seen`` (nan: untestable).
-
-        With ``raw``, chi^2 itself.
-        """
+    def _agreement(self, seen: List[View], leave_out=None, use_arm=True, alpha=None):
+        """chi^2 / its quantile at the false-alarm probability, over ``seen`` (nan: untestable)."""
         total, dof, scales = 0.0, 0, self.current_scales()
         for s in seen:
             uvs = {n: uv for n, uv in s.uvs.items() if n != leave_out}
@@ -1108,8 +1103,6 @@ class ChangeMonitor:
             dof += got[1]
         if dof == 0:
             return float('nan')
-        if raw:
-            return total
         return total / float(chi2.isf(alpha or self.settings.false_alarm, dof))
 
     def _attribute(self, seen: List[View], fired: str):
@@ -1147,12 +1140,10 @@ class ChangeMonitor:
             # views (but the first few, which may precede the change), and if exactly one
             # refit explains them, it is that one.
             scales = self.current_scales()
-            fits = {}
             for n in ok:
                 views = [v for v in seen if n in v.uvs][ONSET_SLACK:]
                 fit = (self._refit(n, views, scales)
                        if len(views) >= CONFIRM_OBSERVATIONS else None)
-                fits[n] = fit
                 evidence[f'refit {n}'] = fit.ratio if fit is not None else float('nan')
                 if fit is not None and not fit.plausible:
                     evidence[f'refit {n}'] = float('inf')
@@ -1162,22 +1153,6 @@ class ChangeMonitor:
             untried = [n for n in ok if np.isnan(evidence[f'refit {n}'])]
             if len(explained) == 1 and not untried:
                 return 'camera', explained[0], evidence
-            if len(explained) > 1 and not untried and self._agreement(seen) > 1.0:
-                # Each explains the views; they need not explain them equally.  Camera n
-                # changed leaves chi^2 = that of the rest without it + its refit's: the
-                # hypotheses have as many parameters each, so the difference is twice a log
-                # likelihood ratio.  Only where the views disagree with the calibration as a
-                # whole at the false-alarm rate itself: nothing else then says that anything
-                # changed (every exclusion agrees, and any refit explains views that did not
-                # move), and on an unchanged PUMA session a disagreement at 1.05 times its
-                # 1e-3 quantile named a camera by a gap of 37.
-                totals = {n: self._agreement(seen, leave_out=n, raw=True) +
-                          float(np.sum(fits[n].new_d2)) for n in explained}
-                ranked = sorted(explained, key=lambda n: totals[n])
-                gap = totals[ranked[1]] - totals[ranked[0]]
-                evidence['likelihood ratio (2 ln)'] = gap
-                if gap > 2.0 * log(1.0 / self.settings.false_alarm):
-                    return 'camera', ranked[0], evidence
             evidence['ambiguous'] = float(len(explained) + len(untried) > 1)
         free = evidence['cameras without the arm']
         if not ok and np.isfinite(free) and free <= 1.0:
