@@ -29,6 +29,7 @@ from armcal_ros.core.change import (ARM_SIGMA_FLOOR, ChangeEvent, ChangeMonitor,
                                     ChangeSettings, CONFIRM_OBSERVATIONS, joint_subset,
                                     ONSET_SLACK, PredictionModel, reference_scales,
                                     size_change, View)
+from armcal_ros.core.evaluation import similarity_fit
 from armcal_ros.core.kinematic_prior import rigid_motion_jacobian
 from armcal_ros.io.calib_files import atomic_write_text
 
@@ -360,14 +361,12 @@ class ChangeTracker:
         joints = [None] * len(points) if joints is None else joints
         out = []
         for name, rec, model in jobs:
-            views = []
-            for X, uvs, q in zip(points, obs, joints):
-                if name not in uvs:
-                    continue
-                got = (X, None) if model.arm_prediction is None else \
-                    model.arm_prediction(X, q)
-                if got is not None:
-                    views.append(View(0, got[0], uvs, arm_design=got[1]))
+            rows = [i for i, uvs in enumerate(obs) if name in uvs]
+            X, A, ok = points[rows], [None] * len(rows), np.ones(len(rows), bool)
+            if model.arm_prediction is not None:
+                X, A, ok = model.arm_prediction.predict(X, [joints[i] for i in rows])
+            views = [View(0, X[k], obs[i], arm_design=A[k])
+                     for k, i in enumerate(rows) if ok[k]]
             try:
                 what, fit = size_change(model, name, views[:SIZING_VIEWS],
                                         false_alarm=self.settings.false_alarm)
@@ -510,33 +509,44 @@ class ArmPrediction:
         later solve's points, ``new`` (N,) bool the samples this prediction was not fitted
         to.  The later solve's frame differs from this one's by a rigid motion (the arm fixes
         it only to its own accuracy): it is the one that maps this prediction of the other
-        samples onto theirs (Kabsch).  NaN with fewer than MIN_FORWARD_SAMPLES of either.
+        samples onto theirs (:func:`~armcal_ros.core.evaluation.similarity_fit` without
+        scale).  NaN with fewer than MIN_FORWARD_SAMPLES of either.
         """
-        got = [self(X, q) for X, q in zip(points, joints)]
-        ok = np.array([g is not None for g in got])
+        pred, _, ok = self.predict(points, joints)
         new, old = ok & np.asarray(new, bool), ok & ~np.asarray(new, bool)
         if new.sum() < MIN_FORWARD_SAMPLES or old.sum() < MIN_FORWARD_SAMPLES:
             return float('nan')
-        pred = np.array([g[0] if g is not None else np.full(3, np.nan) for g in got])
         adjusted = np.asarray(adjusted, float)
-        ps, qs = pred[old], adjusted[old]
-        pc, qc = ps.mean(axis=0), qs.mean(axis=0)
-        U, _, Vt = np.linalg.svd((ps - pc).T @ (qs - qc))
-        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-        R = Vt.T @ D @ U.T
-        e = adjusted[new] - ((pred[new] - pc) @ R.T + qc)
+        frame = similarity_fit(pred[old], adjusted[old], with_scale=False)
+        e = adjusted[new] - frame.apply(pred[new])
         return float(np.sqrt(np.mean(np.sum(e * e, axis=1)) / 3.0))
+
+    def predict(self, points, joints):
+        """
+        Return (points (N, 3), designs (N, 3, G), ok (N,)) of N views at once.
+
+        ``points`` (N, 3) measured, ``joints`` their joint angles (None where a view has
+        none: not ok, its rows NaN).  One forward-kinematics call for all of them.
+        """
+        points = np.asarray(points, float).reshape(-1, 3)
+        ok = np.array([q is not None for q in joints], bool).reshape(len(points))
+        G = len(self.g)
+        X, A = np.full(points.shape, np.nan), np.full((len(points), 3, G), np.nan)
+        if not ok.any():
+            return X, A, ok
+        Q = np.array([np.asarray(q, float).ravel() for q, k in zip(joints, ok) if k])
+        jac = self.kinematics(Q).jacobian
+        at = points[ok]
+        if self.shift is not None:
+            at = at + self.shift(jac)
+        A[ok] = jac * self.scale[None, None, :]
+        X[ok] = at + A[ok] @ self.g
+        return X, A, ok
 
     def __call__(self, point, q):
         """Return (point (3,), design (3, G)) of a view at ``point`` with joints ``q``, or None."""
-        if q is None:
-            return None
-        X = np.asarray(point, float).reshape(1, 3)
-        jac = self.kinematics(np.asarray(q, float).reshape(1, -1)).jacobian
-        if self.shift is not None:
-            X = X + self.shift(jac)
-        A = jac[0] * self.scale[None, :]
-        return X[0] + A @ self.g, A
+        X, A, ok = self.predict(np.asarray(point, float).reshape(1, 3), [q])
+        return (X[0], A[0]) if ok[0] else None
 
 
 def per_point(arrays, limit=None, points=None):

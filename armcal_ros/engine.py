@@ -747,9 +747,12 @@ class CalibrationEngine:
         """
         cal = outcome.calibration
         adj = outcome.result.adjustment
+        with self._lock:
+            by_id = {s.id: s.q for s in self.store.samples}
+        joints = [by_id.get(i) for i in arrays.sample_ids]
         arm, predictor = 0.0, None
         if adj is not None and adj.points is not None and len(adj.points) == len(points):
-            predictor = self._checked_arm_prediction(adj, points, kin, place, arrays)
+            predictor = self._checked_arm_prediction(adj, points, kin, place, arrays, joints)
             arm = (predictor.sigma if predictor is not None else float(
                 np.sqrt(np.mean(np.sum((adj.points - points) ** 2, axis=1)) / 3.0)))
         cal.hyperparameters['arm_sigma_mm'] = 1e3 * arm
@@ -776,15 +779,14 @@ class CalibrationEngine:
                 joint = (labels, C)
         with self._lock:
             jobs = self.changes.accepted(cal)
-            by_id = {s.id: s.q for s in self.store.samples}
-        sized = self.changes.size(jobs, arrays, [by_id.get(i) for i in arrays.sample_ids])
+        sized = self.changes.size(jobs, arrays, joints)
         monitor = self.changes.build_monitor(cal, arrays, arm, blocks, joint, predictor)
         with self._lock:
             self.changes.apply_sizes(sized)
             self.changes.light_shifts = dict(self.light_pooling)
             self.changes.adopt(monitor)
 
-    def _checked_arm_prediction(self, adj, points, kin, place, arrays):
+    def _checked_arm_prediction(self, adj, points, kin, place, arrays, joints):
         """
         Return this solve's ArmPrediction, its error no smaller than the last one's was ahead.
 
@@ -795,6 +797,7 @@ class CalibrationEngine:
         (:meth:`~armcal_ros.change_tracking.ArmPrediction.forward_error`), and the new
         prediction's error is at least that: the arm is predicted no better than the model has
         shown it predicts.  The first solve's prediction, never checked, is not used.
+        ``joints``: the joint angles of each of ``arrays``' samples (None where unknown).
         """
         predictor = self._arm_prediction(adj, points, kin, place)
         previous, fitted = self._arm_checked
@@ -804,11 +807,8 @@ class CalibrationEngine:
         if previous is None:
             self._arm_forward = float('nan')
         else:
-            with self._lock:
-                joints = {s.id: s.q for s in self.store.samples}
             new = np.array([int(i) not in fitted for i in ids])
-            got = previous.forward_error(arrays.points, [joints.get(i) for i in ids],
-                                         adj.points, new)
+            got = previous.forward_error(arrays.points, joints, adj.points, new)
             if np.isfinite(got):
                 self._arm_forward = got
         if predictor is None or not np.isfinite(self._arm_forward):

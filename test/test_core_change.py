@@ -722,8 +722,9 @@ def test_an_arm_predictions_forward_error_is_measured_in_the_later_solves_frame(
         def __init__(self):
             pass
 
-        def __call__(self, point, q):
-            return np.asarray(point, float), None
+        def predict(self, points, joints):
+            points = np.asarray(points, float)
+            return points, None, np.ones(len(points), bool)
 
     rng = np.random.default_rng(8)
     points = rng.uniform(-0.4, 0.4, (60, 3))

@@ -255,6 +255,14 @@ def test_two_cameras_and_the_arms_model_name_the_refocused_one(seed, monkeypatch
     pred = eng.changes.monitor.model.arm_prediction
     s = eng.store.samples[0]
     assert pred(s.point_nominal, s.q)[0] == pytest.approx(pred.own[0], abs=1e-12)
+    # Many views at once as one at a time; a view without joint angles is not predicted.
+    some = eng.store.samples[::40]
+    X, A, ok = pred.predict([v.point_nominal for v in some] + [s.point_nominal],
+                            [v.q for v in some] + [None])
+    assert list(ok) == [True] * len(some) + [False] and pred(s.point_nominal, None) is None
+    for v, x, a in zip(some, X, A):
+        one = pred(v.point_nominal, v.q)
+        assert x == pytest.approx(one[0], abs=1e-12) and a == pytest.approx(one[1], abs=1e-12)
 
     sim, samples, eng = _two_camera_session(CameraChange('left', t, focal_percent=0.5), seed)
     monkeypatch.setattr(CalibrationEngine, '_arm_prediction', lambda *a: None)

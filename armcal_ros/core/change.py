@@ -241,9 +241,9 @@ class PredictionModel:
     joint_covariance: Optional[tuple] = None
     arm_model_sigma: float = 0.0
     #: Where the arm is at a view: a callable (measured point (3,), joint angles or None) ->
-    #: (point (3,), design (3, G)) or None (the engine's ArmPrediction), or None for the
-    #: measured point itself.  Kept with the model so that a change is later sized against
-    #: the arm the test found it with.
+    #: (point (3,), design (3, G)) or None, whose ``predict`` does many views at once (the
+    #: engine's ArmPrediction), or None for the measured point itself.  Kept with the model
+    #: so that a change is later sized against the arm the test found it with.
     arm_prediction: Optional[object] = None
 
     def __post_init__(self):
@@ -848,7 +848,8 @@ def _rises_later(d2, alpha=CONFIRM_ALPHA) -> bool:
     Under one level each d2 is about exponential (chi^2 with 2 degrees of freedom times a
     scale); the likelihood ratio of a step from mean m1 (views before k) to m2 > m1 (from k on)
     against one mean m is 2 (n ln m - k ln m1 - (n - k) ln m2), compared with chi^2_1 at
-    ``alpha`` over the splits k = 1 .. n - 1.
+    ``alpha`` at each split k = 1 .. n - 1 (the largest of n - 1 ratios exceeds it more often
+    than ``alpha``; a false "rises" costs the suspect one more view of waiting).
     """
     x = np.maximum(np.asarray(d2, float), 1e-12)
     n = x.size
@@ -968,9 +969,7 @@ class ChangeMonitor:
             # probability: the CUSUM climbed on a disagreement too weak to be anything (a
             # region the model describes a little worse).  Not a change; that camera starts
             # again.
-            self.unconfirmed += 1
-            self.windows[name][0], self.windows[name][1] = 0.0, None
-            self._place_terms.pop(name, None)
+            self._start_again(name)
             return None
         if kind == 'unexplained' and (len(since) < CONFIRM_OBSERVATIONS + ONSET_SLACK or (
                 evidence.get('ambiguous') and len(since) < MAX_SUSPECT_VIEWS)):
@@ -981,9 +980,8 @@ class ChangeMonitor:
         if kind == 'camera':
             # Confirm before declaring: a moved camera's new views are explained by a new
             # pose (and focal length); a burst of bad detections is not.
-            views = [s for s in since if camera in s.uvs]
             self.suspect = dict(camera=camera, onset=onset, statistic=stat, evidence=evidence,
-                                seen=views, waited=0)
+                                seen=[s for s in since if camera in s.uvs], waited=0)
             return self._confirm(None)
         event = ChangeEvent(kind, camera, onset, int(stamp_ns), stat, self.threshold,
                             len(since), evidence)
@@ -1049,16 +1047,13 @@ class ChangeMonitor:
             # views from the change point on must also disagree with the old camera, as the
             # test itself sees them (d^2 / k^2 with the joint covariance), at the false-alarm
             # rate.  Otherwise the climb was a disagreement too weak to be a change.
-            k2 = self.scale(camera)
-            d2 = [statistics(self.model, v.X0, v.uvs, v.extra, v.arm_design).get(camera)
-                  for v in sus['seen']]
-            d2 = np.array([v for v in d2 if v is not None and np.isfinite(v)]) / k2
+            got = [innovation(self.model, v.X0, v.uvs, camera, v.extra, v.arm_design)
+                   for v in sus['seen']]
+            d2 = np.array([g[2] for g in got if g is not None]) / self.scale(camera)
             quantile = float(chi2.isf(self.settings.false_alarm, 2 * max(1, d2.size)))
             if d2.size and float(np.sum(d2)) <= quantile:
-                self.unconfirmed += 1
                 self.suspect = None
-                self.windows[camera][0], self.windows[camera][1] = 0.0, None
-                self._place_terms.pop(camera, None)
+                self._start_again(camera)
                 return None
         stamp = sus['seen'][-1].stamp_ns
         evidence = dict(sus['evidence'])
@@ -1076,6 +1071,12 @@ class ChangeMonitor:
             return event
         return ChangeEvent('disagreement', camera, sus['onset'], stamp, sus['statistic'],
                            self.threshold, len(fit.used), evidence, fit)
+
+    def _start_again(self, camera):
+        """Count a climb of ``camera``'s CUSUM that was no change, and start it again."""
+        self.unconfirmed += 1
+        self.windows[camera][0], self.windows[camera][1] = 0.0, None
+        self._place_terms.pop(camera, None)
 
     def _refit(self, camera, seen, scales) -> CameraChangeFit:
         """
