@@ -32,6 +32,7 @@ estimates the board's pose on the link (T_link_target) when the board says so.  
 seeds the next solve and is saved as ``target.yaml`` beside the calibration.
 """
 
+import math
 import os
 import threading
 import time
@@ -316,6 +317,10 @@ class CalibrationEngine:
         self._last_solve_start = -np.inf
         self._revision_at_last_solve = -1
         self._samples_at_last_solve = 0
+        # Each camera's views at the last solve, and the store revision before which none of
+        # them can have grown by solve_if_grown's factor (_a_camera_grew).
+        self._views_at_last_solve: Dict[str, int] = {}
+        self._views_check_at = 0
         self._worker: Optional[threading.Thread] = None
         self._listeners: List[Callable[[SolveOutcome], None]] = []
         self.last_outcome: Optional[SolveOutcome] = None
@@ -400,6 +405,7 @@ class CalibrationEngine:
             self.store.clear()
             self._revision_at_last_solve = -1
             self._samples_at_last_solve = 0
+            self._views_at_last_solve = {}
 
     def on_result(self, callback: Callable[[SolveOutcome], None]):
         """Register ``callback(outcome)``, called from the solving thread after every solve."""
@@ -443,20 +449,45 @@ class CalibrationEngine:
         Solve now if the samples have grown by ``growth`` since the last solve (offline use).
 
         Reading a recording, the samples arrive faster than a live node would solve them; this
-        solves at ``min_samples`` and whenever the store has grown by the factor since (and as
-        soon as a changed camera has its new observations), so that change detection follows
-        the recording in time order as the node would, at a logarithmic number of solves.
+        solves at ``min_samples`` and whenever the store, or one camera's views among those
+        that had ``min_samples`` of them, has grown by the factor since (and as soon as a
+        changed camera has its new observations), so that change detection follows the
+        recording in time order as the node would, at a logarithmic number of solves.  A
+        camera recalibrated from its first new views is thus solved again as its own views
+        double, not only as the whole store does: meanwhile that first recalibration, from one
+        part of the workspace, is what its new views elsewhere are tested against.
         Returns the outcome, or None if no solve was due.
         """
         with self._lock:
             n = len(self.store)
             last = self._samples_at_last_solve if self.n_solves else 0
             ready = self._recalibration_ready()
+            grew = bool(last) and n < growth * last and not ready and \
+                self._a_camera_grew(growth)
         if n < self.settings.min_samples or not self.image_sizes:
             return None
-        if last and n < growth * last and not ready:
+        if last and n < growth * last and not ready and not grew:
             return None
         return self.solve()
+
+    def _a_camera_grew(self, growth):
+        """
+        Return True if a camera's views have grown by ``growth`` since the last solve (lock held).
+
+        Only cameras that had ``min_samples`` views then count.  A sample adds at most one
+        view per camera, so the views are counted again only once enough samples can have
+        come in for the nearest camera to get there (the store's revision counts them).
+        """
+        before = {c: v for c, v in self._views_at_last_solve.items()
+                  if v >= self.settings.min_samples}
+        if not before or self.store.revision < self._views_check_at:
+            return False
+        now = self.store.views_per_camera()
+        short = min(growth * v - now.get(c, 0) for c, v in before.items())
+        if short <= 0:
+            return True
+        self._views_check_at = self.store.revision + int(math.ceil(short))
+        return False
 
     def feed(self, samples):
         """Add ``samples`` in time order as a recording is read, solving as they grow."""
@@ -614,6 +645,8 @@ class CalibrationEngine:
             arrays, specs, missing = self._problem()
             n = len(arrays.points)
             self._samples_at_last_solve = len(self.store)
+            self._views_at_last_solve = self.store.views_per_camera()
+            self._views_check_at = 0
             initial = ({k: c.camera for k, c in self._current.cameras.items()}
                        if self._current is not None else None)
             prior, searching = self._prior_for_solve(n)
@@ -1134,6 +1167,7 @@ class CalibrationEngine:
                     # Solved on exactly these samples: a restart need not solve them again.
                     self._revision_at_last_solve = self.store.revision
                     self._samples_at_last_solve = len(self.store)
+                    self._views_at_last_solve = self.store.views_per_camera()
             said.append(f'calibration of {sorted(cal.cameras)} ({cal.model}, '
                         f'{cal.n_samples} samples)')
         if os.path.exists(os.path.join(directory, CHANGES_FILE)):

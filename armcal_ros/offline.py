@@ -308,7 +308,8 @@ def collect_samples(source, settings: Settings, progress: Callable[[int, int], N
             added[store.add(sample).value] += 1
             return
         # In time order, as the node would: each sample is tested against the calibration
-        # of the samples before it, solved as they double (CalibrationEngine.solve_if_grown).
+        # of the samples before it, solved as they (or a camera's views) double
+        # (CalibrationEngine.solve_if_grown).
         added[engine.add_sample(sample).value] += 1
         for cam, (w, h) in collector.image_sizes.items():
             if cam in engine.settings.camera_names:

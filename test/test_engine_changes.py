@@ -4,7 +4,8 @@ The engine follows a cell that changes: a knocked camera, a refocused lens, bad 
 Sessions come from the simulator (:func:`~armcal_ros.sim.cell.simulate_cell` with
 :class:`~armcal_ros.sim.cell.CameraChange`) at point level
 (:func:`~armcal_ros.sim.point_level.dwell_observations`: the dwells as pooled detections with
-0.05 px noise), fed in time order as a live node would see them, solving as the samples double.
+0.05 px noise), fed in time order as a live node would see them, solving as the samples (or
+one camera's views) double.
 """
 import numpy as np
 import pytest
@@ -269,3 +270,33 @@ def test_two_cameras_and_the_arms_model_name_the_refocused_one(seed, monkeypatch
     eng.feed(samples)
     assert not [r for r in eng.changes.records if r.kind == 'camera'], \
         [r.summary() for r in eng.changes.records]
+
+
+def test_a_camera_whose_own_views_doubled_is_solved_again_before_the_store_doubles():
+    """
+    Offline, a camera is solved again as its own views double, not only as the store does.
+
+    A camera recalibrated from its first new views would otherwise be tested, until the whole
+    store doubled, against that first recalibration from one part of the workspace.  Here cam2
+    saw 20 of the 40 samples of the last solve: the solve is due at its 40th view, with 60
+    samples stored, and not a sample before.
+    """
+    sim, samples = _session([], seed=1)
+    eng = CalibrationEngine(EngineSettings([c.name for c in sim.cameras],
+                                           PriorSettings('fixed'),
+                                           solver_settings(defaults()), min_samples=20))
+    for c in sim.cameras:
+        eng.set_image_size(c.name, c.width, c.height)
+    seen = [s for s in samples if 'cam2' in s.observations and len(s.observations) == 3]
+    first = seen[:20] + [Sample(s.point_nominal, {n: o for n, o in s.observations.items()
+                                                  if n != 'cam2'}, stamp_ns=s.stamp_ns, q=s.q)
+                         for s in seen[20:40]]
+    for s in sorted(first, key=lambda s: s.stamp_ns):
+        eng.add_sample(s)
+    assert eng.solve().accepted and len(eng.store) == 40
+    due = []
+    eng.solve = lambda: due.append(len(eng.store))
+    for s in seen[40:60]:
+        eng.add_sample(s)
+        eng.solve_if_grown()
+    assert due == [60]
