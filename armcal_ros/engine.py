@@ -462,11 +462,8 @@ class CalibrationEngine:
             n = len(self.store)
             last = self._samples_at_last_solve if self.n_solves else 0
             ready = self._recalibration_ready()
-            grew = bool(last) and n < growth * last and not ready and \
-                self._a_camera_grew(growth)
-        if n < self.settings.min_samples or not self.image_sizes:
-            return None
-        if last and n < growth * last and not ready and not grew:
+            due = not last or n >= growth * last or ready or self._a_camera_grew(growth)
+        if n < self.settings.min_samples or not self.image_sizes or not due:
             return None
         return self.solve()
 
