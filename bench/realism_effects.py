@@ -19,11 +19,15 @@ Then all together: a realistic cell (the lamp, ``--lighting realistic``) with ev
 above but the textured scene and every arm and clock effect of bench/arm_effects.py (late
 stamps, lost and jittered joint states, backlash, repeatability, a ring-down after stops),
 calibrated as `armcal calibrate` does by default (each camera's stamp latency measured and the
-frames paired again at it); and the same with the textured scene as well.  The per-view fit
+frames paired again at it); and the same with the textured scene as well.  Each of these is
+recorded again with the ball glowing alike from every side and every other effect the same:
+the lamp-lit error over that one's is what the light costs when everything else is present,
+beside the lamp-lit error over the clean recording's (no effect at all).  The per-view fit
 (``shaded``) is run only where its use is the advice - the LED, whose bright side turns with
 the tool.
 
 Usage: python bench/realism_effects.py [--seeds 5] [--duration 60] [--processes 2] [--table-only]
+       [--only TEXT] (rerun only the effects whose label starts with TEXT, e.g. "all together")
 """
 
 import argparse
@@ -55,6 +59,9 @@ CENTRES = ('centroid', 'shaded', 'shaded_pooled')
 PER_VIEW_FIT = 'LED along the tool z, cos fall-off'
 #: Label prefix of the runs with every effect at once (latency measured, realistic light).
 TOGETHER = 'all together'
+#: In the label of an all-together recording with the ball glowing alike from every side:
+#: what the light alone costs is the lamp-lit run's error over this one's.
+UNIFORM = 'uniform light'
 
 
 def centres(label):
@@ -84,9 +91,22 @@ def effects(cell):
         a for label, opts in alone
         if not opts or opts[0] not in ('--lamp', '--led', '--clutter', '--joint-rate')
         for a in opts] + ['--joint-rate', '1000'] + arm
+    uniform = every[2:]
     return alone + [
         (f'{TOGETHER}: lamp, every effect but the textured scene, latency measured', every),
-        (f'{TOGETHER} with the textured scene, 40 DN', every + ['--clutter', '40'])]
+        (f'{TOGETHER}: {UNIFORM}, every effect but the textured scene, latency measured',
+         uniform),
+        (f'{TOGETHER} with the textured scene, 40 DN', every + ['--clutter', '40']),
+        (f'{TOGETHER} with the textured scene, 40 DN, {UNIFORM}', uniform + ['--clutter', '40'])]
+
+
+def uniform_twin(cell, label):
+    """Return the label of the uniform-light run beside an all-together ``label`` (or None)."""
+    labels = [name for name, _ in effects(cell)]
+    k = labels.index(label)
+    if not label.startswith(TOGETHER) or UNIFORM in label or k + 1 == len(labels):
+        return None
+    return labels[k + 1] if UNIFORM in labels[k + 1] else None
 
 
 def observation_errors(out, gt_dir, centre):
@@ -162,6 +182,62 @@ def case(args):
     return out
 
 
+def kept_runs(only, duration):
+    """Return the stored runs (docs/bench/realism_effects.json) of the effects not rerun."""
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), 'docs',
+                        'bench', 'realism_effects.json')
+    if not os.path.exists(path):
+        return []
+    with open(path) as f:
+        stored = json.load(f)
+    if stored.get('duration_s', duration) != duration:
+        raise SystemExit(f'--only: the stored runs are {stored["duration_s"]} s long, '
+                         f'not --duration {duration}')
+    return [r for r in stored['runs'] if not r['effect'].startswith(only)]
+
+
+def together_summary(res):
+    """
+    Say what the light costs with every other effect present, per cell and seed.
+
+    The all-together recording's shape error with ``shaded_pooled`` (the default centre) over
+    that of the same recording under uniform light with the centroid (the detector the
+    uniform ball needs), and over the clean recording's ("none", centroid): median (range)
+    over the seeds that have both.
+    """
+    def shape(cell, seed, effect, centre):
+        for r in res:
+            if (r['cell'], r['seed'], r['effect']) == (cell, seed, effect):
+                got = r.get(centre, {})
+                return None if got.get('failed') else got.get('shape_mm')
+        return None
+    lines = []
+    for cell in CELL_NAMES:
+        for label, _ in effects(cell):
+            twin = uniform_twin(cell, label)
+            if twin is None:
+                continue
+            by_twin, by_clean = [], []
+            for seed in sorted({r['seed'] for r in res if r['cell'] == cell}):
+                lit = shape(cell, seed, label, 'shaded_pooled')
+                uni = shape(cell, seed, twin, 'centroid')
+                clean = shape(cell, seed, 'none', 'centroid')
+                if lit is not None and uni:
+                    by_twin.append(lit / uni)
+                if lit is not None and clean:
+                    by_clean.append(lit / clean)
+
+            def say(v):
+                return (f'{np.median(v):.2f} x ({min(v):.2f}-{max(v):.2f}, {len(v)} seed(s))'
+                        if v else 'n/a')
+            lines.append(f'- {cell}, {label[len(TOGETHER):].strip(" :") or "every effect"}: '
+                         f'`shaded_pooled` over the same under uniform light {say(by_twin)}; '
+                         f'over the clean recording {say(by_clean)} (target: at most 2 x).')
+    return '\n'.join(['Shape error, all together, lamp-lit over uniform (the light\'s cost '
+                      'with every other effect present) and over the clean recording:', ''] +
+                     lines)
+
+
 def main(argv=None):
     """Run the benchmark, print the table and write it to docs/."""
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[1])
@@ -170,21 +246,28 @@ def main(argv=None):
     ap.add_argument('--processes', type=int, default=2)
     ap.add_argument('--table-only', action='store_true',
                     help='tabulate bench/realism_effects.jsonl as it is (no new runs)')
+    ap.add_argument('--only', default=None, metavar='TEXT',
+                    help='run only the effects whose label starts with TEXT, keeping the '
+                    'other effects\' runs from docs/bench/realism_effects.json')
     args = ap.parse_args(argv)
     # Seed by seed, each result kept as it comes (bench/realism_effects.jsonl): an interrupted
     # run still has whole seeds, and --table-only tabulates what there is.
     partial = os.path.join(os.path.dirname(os.path.abspath(__file__)), 'realism_effects.jsonl')
     if not args.table_only:
         jobs = [(cell, seed, args.duration, label, opts) for seed in range(args.seeds)
-                for cell in CELL_NAMES for label, opts in effects(cell)]
-        open(partial, 'w').close()
+                for cell in CELL_NAMES for label, opts in effects(cell)
+                if args.only is None or label.startswith(args.only)]
+        with open(partial, 'w') as f:
+            for r in (kept_runs(args.only, args.duration) if args.only else []):
+                f.write(json.dumps(r) + '\n')
         with Pool(args.processes) as pool:
             for r in pool.imap_unordered(case, jobs, chunksize=1):
                 with open(partial, 'a') as f:
                     f.write(json.dumps(r) + '\n')
     with open(partial) as f:
         res = [json.loads(line) for line in f if line.strip()]
-    seeds = len({r['seed'] for r in res})
+    seeds = sorted({len({r['seed'] for r in res if r['effect'] == e}) for e in
+                    {r['effect'] for r in res}})
     rows = []
     for cell in CELL_NAMES:
         for label, _ in effects(cell):
@@ -193,13 +276,13 @@ def main(argv=None):
                 ok = [r[centre] for r in rs if not r[centre].get('failed')]
                 failed = len(rs) - len(ok)
                 if not ok:
-                    rows.append([cell, label, centre] + ['failed'] * 9)
+                    rows.append([cell, label, centre, str(len(rs))] + ['failed'] * 9)
                     continue
 
                 def med(key):
                     v = [o[key] for o in ok if key in o]
                     return f'{np.median(v):.3f}' if v else 'n/a'
-                rows.append([cell, label, centre,
+                rows.append([cell, label, centre, str(len(rs)),
                              med('shape_mm') + (f' ({failed} failed)' if failed else ''),
                              med('limit_shape_mm'), med('absolute_mm'),
                              med('limit_absolute_mm'), med('median_px'),
@@ -211,14 +294,17 @@ def main(argv=None):
     text = '\n'.join([
         '## Each effect of a real cell alone, for each sphere centre '
         '(bench/realism_effects.py)', '',
-        f'{seeds} seed(s) x {args.duration:.0f} s per cell and effect; the same trajectory '
+        f'{"-".join(map(str, seeds))} seed(s) x {args.duration:.0f} s per cell and effect '
+        '(column "seeds"); the same trajectory '
         'and errors with one `armcal simulate` switch each, calibrated with `auto` and each '
         '`sphere_centre` (no latency pass: nothing here stamps late), then all together on a '
         'realistic cell - the lamp, every effect but the textured scene and every arm and '
         'clock effect of *arm-effects* (cameras stamped 30, 80, 0 (50) ms late, joint states '
         'at 1 kHz with 1 ms jitter and 10 % lost, backlash, repeatability, ring-down) - '
         'calibrated as `armcal calibrate` does by default (latency measured, frames paired '
-        'again), and with the textured scene as well. The per-view fit (`shaded`) is run only '
+        'again), and with the textured scene as well; each of these also with the ball '
+        'glowing alike from every side and every other effect the same ("uniform light"): '
+        'the light\'s own cost is the ratio of the two. The per-view fit (`shaded`) is run only '
         'for the LED, where it is the advice. Shape and absolute error '
         'against the simulator\'s cameras, and the limit beside them: the same recording '
         'calibrated with the arm\'s true geometry and the `fixed` model '
@@ -232,13 +318,13 @@ def main(argv=None):
         'Medians over the seeds; a '
         '"failed" run is one `armcal calibrate` refused (its reason on stderr). '
         f'Measured on {machine()}.', '',
-        table(['cell', 'effect', 'sphere_centre', 'shape mm', 'limit shape mm', 'absolute mm',
-               'limit absolute mm', 'median px', '99th pct px', 'mean shift px', 'false kept',
-               'still detected %'],
-              rows)])
+        table(['cell', 'effect', 'sphere_centre', 'seeds', 'shape mm', 'limit shape mm',
+               'absolute mm', 'limit absolute mm', 'median px', '99th pct px',
+               'mean shift px', 'false kept', 'still detected %'],
+              rows), '', together_summary(res)])
     print(text)
     write_section('realism-effects', text)
-    write_json('realism_effects', dict(runs=res, machine=machine()))
+    write_json('realism_effects', dict(runs=res, duration_s=args.duration, machine=machine()))
 
 
 if __name__ == '__main__':
