@@ -166,7 +166,10 @@ class ChangeTracker:
         # The scale is calibrated on the samples the cameras were fitted to, whose residuals
         # the fit has pulled in: there the parameters' uncertainty does not show, so it is
         # left out of the scale and added for the new views only.
-        scales = reference_scales(PredictionModel(cams, sig, arm), points, obs)
+        retained = {n: c.redundancy / (2.0 * c.n_inliers)
+                    for n, c in calibration.cameras.items()
+                    if n in cams and np.isfinite(c.redundancy) and c.n_inliers > 0}
+        scales = reference_scales(PredictionModel(cams, sig, arm), points, obs, retained)
         model = PredictionModel(cams, sig, arm, {k: v for k, v in
                                                  (parameter_covariance or {}).items()
                                                  if k in cams},

@@ -66,6 +66,19 @@ def test_innovations_of_an_unchanged_cell_are_chi_square_with_two_degrees():
     assert all(0.8 < k < 1.25 for k in scales.values())
 
 
+def test_a_scale_from_fitted_samples_is_divided_by_the_share_of_their_misfit_left():
+    cams, _, measured, uvs = _stream(200, 1)
+    model = _model(cams)
+    plain = reference_scales(model, measured, uvs)
+    names = sorted(plain)
+    left = reference_scales(model, measured, uvs, {names[0]: 0.25, names[1]: float('nan')})
+    assert left[names[0]] == pytest.approx(plain[names[0]] / 0.25)
+    # No share, or none that means anything: the plain scale.
+    for n in names[1:]:
+        assert left[n] == plain[n]
+    assert reference_scales(model, measured, uvs, {names[0]: 1.5}) == plain
+
+
 def test_batched_statistics_equal_the_per_sample_ones():
     """Every camera's d^2 over many samples at once equals the per-sample computation."""
     cams, _, measured, uvs = _stream(150, 4)

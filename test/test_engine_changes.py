@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from armcal_ros.core.change import MEDIAN_CHI2_2, statistics
 from armcal_ros.params import defaults
 from armcal_ros.core.priors import PriorSettings
 from armcal_ros.engine import CalibrationEngine, EngineSettings
@@ -98,6 +99,30 @@ def test_no_change_is_declared_on_an_unchanged_session():
     sim, samples = _session([], seed=1)
     eng = _run(sim, samples)
     assert [r.summary() for r in eng.changes.records] == []
+
+
+def test_a_first_solves_monitor_tests_new_views_no_more_strictly_than_their_noise():
+    """
+    The scale from 20 fitted samples allows for what the fit absorbed of their misfits.
+
+    A first solve of 20 samples leaves each camera about a quarter to a third of its residual
+    degrees of freedom; its own samples' statistics read that much low, and a scale taken from
+    them alone tested the next 40 views of an unchanged session at about twice their
+    chi^2_2 median (a false change in waiting).  With the scale divided by the share left,
+    the new views' median statistic is at most its chi^2_2 median (measured 0.3-0.7 of it;
+    conservative: the points' share of the leverage is counted too).
+    """
+    sim, samples = _session([], seed=0)
+    eng = _run(sim, samples[:20])
+    mon = eng.changes.monitor
+    retained = {n: c.redundancy / (2 * c.n_inliers) for n, c in eng.current.cameras.items()}
+    assert all(0.0 < r < 0.6 for r in retained.values()), retained
+    ratios = []
+    for s in samples[20:60]:
+        uvs = {n: np.asarray(o.uv).reshape(2) for n, o in s.observations.items()}
+        for n, d2 in statistics(mon.model, s.point_nominal, uvs).items():
+            ratios.append(d2 / mon.scales[n])
+    assert np.median(ratios) / MEDIAN_CHI2_2 < 1.0
 
 
 def test_a_refocused_lens_is_found_and_its_focal_length_relearnt():

@@ -633,16 +633,32 @@ def statistics_batch(model: PredictionModel, points, observations,
     return out
 
 
-def reference_scales(model: PredictionModel, points, observations) -> Dict[str, float]:
+def reference_scales(model: PredictionModel, points, observations,
+                     retained: Dict[str, float] = None) -> Dict[str, float]:
     """
     Return k_c^2 per camera from the calibration's own samples (module docstring).
 
     ``points`` (N, 3) the arm's points, ``observations`` a list of N dicts name -> uv (2,).
+    ``retained``: name -> the share of camera c's residual degrees of freedom the fit left,
+    rho_c = r_c / (2 n_c) with r_c its redundancy counted by leverage.  A fitted residual has
+    E[e^2] = sigma^2 (1 - h): on the samples a camera was fitted to its misfits are pulled in by
+    the share of them its parameters (and the points and the arm's model) absorbed, and a new
+    view, which nothing was fitted to, is not.  So the scale is divided by rho_c:
+    k_c^2 = median(d_c^2) / (2 ln 2) / rho_c.  Over many samples rho_c is near 1; on a first
+    solve of 20 samples a model with many parameters leaves a fraction (0.15-0.23 measured on
+    a two-camera cell), and without it the misfits of new views in another part of the
+    workspace read 3-4 times their expectation and declared unchanged cameras changed.
+    Counting the points' share too makes this conservative (the leave-one-out prediction
+    re-fuses the point without the camera): a new view is tested at most as strictly as the
+    fit's own residuals warrant.
     """
     out = {}
     for name, d2 in statistics_batch(model, points, observations).items():
         v = d2[np.isfinite(d2)]
         out[name] = float(np.median(v)) / MEDIAN_CHI2_2 if v.size >= MIN_REFERENCE else 1.0
+        rho = (retained or {}).get(name, 1.0)
+        if v.size >= MIN_REFERENCE and np.isfinite(rho) and 0.0 < rho < 1.0:
+            out[name] /= rho
     return out
 
 
