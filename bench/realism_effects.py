@@ -131,10 +131,12 @@ def observation_errors(out, gt_dir, centre):
         e = arrays.uv[sel] - f_uv[near]
         errors.append(np.hypot(e[:, 0], e[:, 1]))
         good = errors[-1] <= 1.0
-        shifts.append(float(np.hypot(*e[good].mean(axis=0))))
+        if good.any():  # a camera with no observation within 1 px has no shift to report
+            shifts.append(float(np.hypot(*e[good].mean(axis=0))))
     errors = np.concatenate(errors)
     return dict(median_px=float(np.median(errors)), p99_px=float(np.percentile(errors, 99)),
-                shift_px=float(np.median(shifts)), false_kept=int(np.sum(errors > 1.0)),
+                shift_px=float(np.median(shifts)) if shifts else float('nan'),
+                false_kept=int(np.sum(errors > 1.0)),
                 observations=int(len(errors)))
 
 
@@ -281,6 +283,11 @@ def main(argv=None):
 
                 def med(key):
                     v = [o[key] for o in ok if key in o]
+                    if key == 'shift_px':
+                        # Runs recorded before a camera without a kept observation was
+                        # left out of the shift carry NaN there; the median is over the
+                        # others.  (A NaN error elsewhere is a camera the run lost: shown.)
+                        v = [x for x in v if x is not None and np.isfinite(x)]
                     return f'{np.median(v):.3f}' if v else 'n/a'
                 rows.append([cell, label, centre, str(len(rs)),
                              med('shape_mm') + (f' ({failed} failed)' if failed else ''),
