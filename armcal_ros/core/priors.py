@@ -42,6 +42,7 @@ from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
 from armcal_ros.core.field import DenseDesign, LatticeField, StackedDesign
 from armcal_ros.core.kernels import kernel_matrix, KERNELS
+from armcal_ros.core.kinematic_prior import rigid_motion_jacobian
 
 NOISE_MODELS = ('fixed', 'independent', 'correlated', 'kinematic', 'hybrid', 'auto')
 FIELD_FORMS = ('auto', 'exact', 'lattice')
@@ -234,6 +235,42 @@ class PointPrior:
             L = np.tril(self._chol[0])
             return 'kron', L @ L.T
         return 'lowrank', (1.0 / self.precision, self.design_matrix())
+
+    def relative_sigma(self, limit=300) -> float:
+        """
+        Return the per-axis error this prior gives a point, less what a rigid motion takes (m).
+
+        Cameras fitted to the points move with any rigid motion common to all of them, so that
+        part of the points' errors never shows at a new view.  With C the prior covariance of
+        the errors of ``limit`` points spread evenly over the N (3m x 3m, from
+        :meth:`error_covariance`), R (3m x 6) their rigid motions and P = I - R R^+,
+
+            sigma^2 = tr(P C P) / 3m.
+
+        A new view's point is drawn from the same prior, so this is the size of the arm's
+        error to expect there.  The adjustment's corrections at its own points say less:
+        they are posterior means, shrunk towards zero by the cameras' pull (by four times on
+        a 20-sample two-camera UR5 calibration, docs/BENCHMARKS.md *realism-effects*).
+        0 for ``fixed``.
+        """
+        kind, C = self.error_covariance()
+        if kind == 'none' or self.n == 0:
+            return 0.0
+        keep = np.unique(np.linspace(0, self.n - 1, min(self.n, int(limit))).round().astype(int))
+        m = len(keep)
+        if kind == 'blocks':
+            full = np.zeros((3 * m, 3 * m))
+            for k, i in enumerate(keep):
+                full[3 * k:3 * k + 3, 3 * k:3 * k + 3] = C[i]
+        elif kind == 'kron':
+            full = np.kron(C[np.ix_(keep, keep)], np.eye(3))
+        else:
+            var, A = C
+            A = A[keep].reshape(3 * m, -1)
+            full = A @ A.T + np.diag(np.repeat(var[keep], 3))
+        R = rigid_motion_jacobian(self.measured[keep]).reshape(3 * m, 6)
+        P = np.eye(3 * m) - R @ np.linalg.pinv(R)
+        return float(np.sqrt(max(np.trace(P @ full @ P) / (3 * m), 0.0)))
 
     def block_precision(self):
         """Precision as (N, 3, 3) blocks (kind 'block' only)."""
