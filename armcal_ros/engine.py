@@ -833,7 +833,7 @@ class CalibrationEngine:
         shown how it predicts ahead (:meth:`_checked_arm_prediction`) nothing knows better.
         """
         arm = float(np.sqrt(np.mean(np.sum((adj.points - points) ** 2, axis=1)) / 3.0))
-        if getattr(adj, 'prior', None) is not None:
+        if adj.prior is not None:
             arm = max(arm, adj.prior.relative_sigma())
         if kin is not None and len(points) and kin.n == len(points):
             tolerances = PointPrior(points, replace(self.settings.prior, model='kinematic',

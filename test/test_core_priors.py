@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from armcal_ros.core.kernels import kernel_matrix
+from armcal_ros.core.kinematic_prior import KinematicData
 from armcal_ros.core.priors import PointPrior, PriorSettings
 
 
@@ -59,7 +60,6 @@ def test_relative_sigma_takes_out_only_rigid_motion():
 
 def test_relative_sigma_of_a_kinematic_prior():
     """A base-frame offset is rigid and does not count; a link-length error does."""
-    from armcal_ros.core.kinematic_prior import KinematicData
     rng = np.random.default_rng(2)
     Xm = rng.uniform(-0.3, 0.3, (25, 3))
     shift = np.broadcast_to(np.eye(3), (25, 3, 3))

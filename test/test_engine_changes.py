@@ -12,6 +12,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from armcal_ros.core.change import MEDIAN_CHI2_2, statistics
+from armcal_ros.core.evaluation import similarity_fit
 from armcal_ros.params import defaults
 from armcal_ros.core.priors import PriorSettings
 from armcal_ros.engine import CalibrationEngine, EngineSettings
@@ -135,7 +136,6 @@ def test_a_first_solves_arm_error_is_no_smaller_than_the_arm_has_at_new_views():
     true arm error of the next 40 views, less the rigid motion that best maps the first 20
     nominal points onto their true places (the cameras' frame), RMS per axis.
     """
-    from armcal_ros.core.evaluation import similarity_fit
     sim, samples = _session([], seed=0)
     eng = _run(sim, samples[:20])
     claimed = eng.current.hyperparameters['arm_sigma_mm']

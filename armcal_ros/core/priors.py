@@ -245,32 +245,33 @@ class PointPrior:
         the errors of ``limit`` points spread evenly over the N (3m x 3m, from
         :meth:`error_covariance`), R (3m x 6) their rigid motions and P = I - R R^+,
 
-            sigma^2 = tr(P C P) / 3m.
+            sigma^2 = tr(P C P) / 3m = (tr C - tr(R^+ C R)) / 3m,
 
-        A new view's point is drawn from the same prior, so this is the size of the arm's
-        error to expect there.  The adjustment's corrections at its own points say less:
-        they are posterior means, shrunk towards zero by the cameras' pull (by four times on
-        a 20-sample two-camera UR5 calibration, docs/BENCHMARKS.md *realism-effects*).
-        0 for ``fixed``.
+        (P is a symmetric projection), so C is applied to R's six columns only.  A new view's
+        point is drawn from the same prior, so this is the size of the arm's error to expect
+        there; the adjustment's corrections at its own points, posterior means shrunk towards
+        zero by the cameras' pull, say less.  0 for ``fixed``.
         """
         kind, C = self.error_covariance()
         if kind == 'none' or self.n == 0:
             return 0.0
         keep = np.unique(np.linspace(0, self.n - 1, min(self.n, int(limit))).round().astype(int))
         m = len(keep)
+        R = rigid_motion_jacobian(self.measured[keep])                 # (m, 3, 6)
         if kind == 'blocks':
-            full = np.zeros((3 * m, 3 * m))
-            for k, i in enumerate(keep):
-                full[3 * k:3 * k + 3, 3 * k:3 * k + 3] = C[i]
+            B = C[keep]
+            trace, CR = float(np.einsum('iaa->', B)), np.einsum('iab,ibk->iak', B, R)
         elif kind == 'kron':
-            full = np.kron(C[np.ix_(keep, keep)], np.eye(3))
+            K = C[np.ix_(keep, keep)]
+            trace, CR = 3.0 * float(np.trace(K)), np.einsum('ij,jak->iak', K, R)
         else:
             var, A = C
-            A = A[keep].reshape(3 * m, -1)
-            full = A @ A.T + np.diag(np.repeat(var[keep], 3))
-        R = rigid_motion_jacobian(self.measured[keep]).reshape(3 * m, 6)
-        P = np.eye(3 * m) - R @ np.linalg.pinv(R)
-        return float(np.sqrt(max(np.trace(P @ full @ P) / (3 * m), 0.0)))
+            A = A[keep]                                                # (m, 3, G)
+            trace = float(np.sum(A * A) + 3.0 * np.sum(var[keep]))
+            CR = A @ np.einsum('jbg,jbk->gk', A, R) + var[keep][:, None, None] * R
+        R, CR = R.reshape(3 * m, 6), CR.reshape(3 * m, 6)
+        absorbed = float(np.trace(np.linalg.pinv(R) @ CR))
+        return float(np.sqrt(max(trace - absorbed, 0.0) / (3 * m)))
 
     def block_precision(self):
         """Precision as (N, 3, 3) blocks (kind 'block' only)."""
