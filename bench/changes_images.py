@@ -23,6 +23,7 @@ import json
 import os
 import sys
 import tempfile
+import textwrap
 from multiprocessing import Pool
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
@@ -143,8 +144,10 @@ def render(rows, seed, duration):
                      r.get('delay_views', '-'),
                      f'{r["delay_s"]:.1f}' if 'delay_s' in r else '-',
                      wrong, len(r['reports']),
-                     '; '.join(e['summary'] for e in r['declared'] + r['reports'])[:240]
-                     or '-'])
+                     # The whole text is in the JSON; the table cuts at a word.
+                     textwrap.shorten('; '.join(e['summary']
+                                                for e in r['declared'] + r['reports']),
+                                      240, placeholder=' ...') or '-'])
     md = ['## Cameras that move, through the images (bench/changes_images.py)', '',
           f'Each named cell recorded for {duration:.0f} s (seed {seed}) under one '
           'lamp (`realistic`), read by `armcal calibrate`\'s pipeline with the default '
