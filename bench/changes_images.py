@@ -54,9 +54,8 @@ def _cases(duration):
     return out
 
 
-def run_case(args):
-    """Record (or reuse) one case's bag, read it as `armcal calibrate` does; return figures."""
-    (name, label, change), seed, duration, bags = args
+def record(name, label, change, seed, duration, bags):
+    """Record (or reuse) one case's bag; return (bag, parameter file, bag start ns)."""
     cell = CELLS[name]
     sim = cell.sim_settings('realistic')
     if change is not None:
@@ -74,6 +73,13 @@ def run_case(args):
     p = cell_parameters(sim, cell.compressed)
     with open(params, 'w') as f:
         yaml.safe_dump({'armcal': {'ros__parameters': p}}, f)
+    return bag, params, start
+
+
+def run_case(args):
+    """Record (or reuse) one case's bag, read it as `armcal calibrate` does; return figures."""
+    (name, label, change), seed, duration, bags = args
+    bag, params, start = record(name, label, change, seed, duration, bags)
     front = collect_samples(bag, load_settings(params))
     recs = [r for r in front.changes.records]
     views = []
