@@ -52,6 +52,7 @@ bench: $(STAMP)
 	$(PY) bench/hyperparameters.py
 	$(PY) bench/changes.py
 	$(PY) bench/changes_images.py
+	$(PY) bench/node_changes.py
 	$(PY) bench/realism.py
 	$(PY) bench/realism.py --all-effects
 	$(PY) bench/realism_effects.py

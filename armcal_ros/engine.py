@@ -13,7 +13,8 @@ are warm-started from the current calibration.
 A new result replaces the current calibration only if it is not clearly worse: it must have
 converged, and no camera's image noise estimated from its residuals (the RMS corrected for the
 degrees of freedom its parameters took, :func:`_residuals_worse`) may exceed
-``max(reject_rms_ratio x previous, previous + reject_rms_margin_px)``, nor its inlier
+``reject_rms_ratio`` x the previous one (or more where the two estimates' own scatter allows;
+``previous + reject_rms_margin_px`` for a calibration saved without its redundancy), nor its inlier
 fraction drop by more than ``reject_inlier_drop`` and by more than its counting noise explains
 (fractions as expected rates, :func:`inlier_fall_is_clear`).  A burst of bad detections
 therefore cannot overwrite a good calibration; the rejection is reported with its reason.
@@ -40,6 +41,7 @@ from dataclasses import dataclass, field, replace
 from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
+from scipy.stats import f as f_distribution
 from threadpoolctl import threadpool_limits
 
 from armcal_ros.change_tracking import ArmPrediction, ChangeTracker, CHANGES_FILE
@@ -193,25 +195,43 @@ def pooled_light_arrays(arrays):
     return replace(arrays, uv=uv, spread_px=spread), info
 
 
-def _residuals_worse(old, new, ratio, margin_px):
+#: The image-noise rise test's false-refusal rate: a rise that two estimates of the same noise
+#: reach once in a thousand solves.
+NOISE_RISE_ALPHA = 1e-3
+
+
+def _residuals_worse(old, new, ratio, margin_px, alpha=NOISE_RISE_ALPHA):
     """
     Say how the new fit of a camera is clearly worse than the old one, or return ''.
 
-    Compared: the image noise each fit's residuals give, sum |r|^2 over the degrees of freedom
-    left (``sigma_px``, redundancy counted by leverage), not the raw RMS.  A fit whose
-    parameters absorb its few observations has an RMS near zero that says nothing about the
-    noise (a first solve over three views of a camera: 0.000 px), and the next solve's honest
-    0.99 px is then no reason to refuse it.  Without redundancy in the old fit there is no
-    yardstick and nothing is refused on these grounds.  Calibrations saved before the
-    redundancy was recorded fall back to the RMS.
+    Compared: the image noise each fit's residuals give, s = sqrt(sum |r|^2 / r) over the r
+    degrees of freedom left (``sigma_px``, redundancy counted by leverage), not the raw RMS.
+    A fit whose parameters absorb its few observations has an RMS near zero that says nothing
+    about the noise (a first solve over three views of a camera: 0.000 px), and the next
+    solve's honest 0.99 px is then no reason to refuse it.  Without redundancy in the old fit
+    there is no yardstick and nothing is refused on these grounds.
+
+    The new noise may exceed the old by ``ratio`` (new places, a model the data now ask more
+    of), and by what two estimates of one noise differ by: for Gaussian noise s_new^2 / s_old^2
+    follows Snedecor's F(r_new, r_old), so the ratio of the two is allowed the square root of
+    its upper ``alpha`` quantile where that is larger (about 3 x over ten degrees of freedom
+    each, 1.24 x over two hundred).  The limit is relative: at the 0.01 px of a
+    ball pooled over a dwell, an absolute margin of a few tenths of a pixel would let a solve
+    thirty times worse through (one that took in the first views of a knocked camera).
+    Calibrations saved before the redundancy was recorded fall back to the RMS, allowed
+    ``max(ratio x previous, previous + margin_px)``.
     """
     a, b, what = old.sigma_px, new.sigma_px, 'image noise from its residuals'
     if not np.isfinite(old.redundancy):
         a, b, what = old.rms_px, new.rms_px, 'reprojection RMS'
+        limit = max(ratio * a, a + margin_px)
+    else:
+        r_new = new.redundancy if np.isfinite(new.redundancy) and new.redundancy > 0 else 1.0
+        f = float(f_distribution.isf(alpha, r_new, max(old.redundancy, 1e-3)))
+        limit = a * max(ratio, math.sqrt(f) if np.isfinite(f) else math.inf)
     if not (np.isfinite(a) and np.isfinite(b)):
         return ''
-    limit = max(ratio * a, a + margin_px)
-    return (f'{what} {b:.2f} px > {limit:.2f} px allowed after {a:.2f} px' if b > limit
+    return (f'{what} {b:.3f} px > {limit:.3f} px allowed after {a:.3f} px' if b > limit
             else '')
 
 

@@ -162,8 +162,17 @@ def node_run(bag, params, out_dir, rate, cameras, env):
     return got, _records(out_dir), infos, stats, final
 
 
-def summarise(got, records, truth, change, start, infos=None):
-    """Return one row's figures from a run's cameras and change records."""
+def views_between(out_dir, camera, t0_ns, t1_ns):
+    """Return how many views of ``camera`` the run stored (retired ones too) in [t0, t1]."""
+    store = np.load(os.path.join(out_dir, 'samples.npz'))
+    k = json.loads(str(store['meta']))['camera_names'].index(camera)
+    obs = np.concatenate([store['obs'], store['retired_obs']])
+    st = obs[obs[:, 1] == k, 3]
+    return int(np.sum((st >= t0_ns) & (st <= t1_ns)))
+
+
+def summarise(got, records, truth, change, start, out_dir, infos=None):
+    """Return one row's figures from a run's cameras, change records and output directory."""
     declared = [r for r in records if r['kind'] in ('camera', 'arm') and
                 r['status'] != 'reported']
     reports = [r for r in records if r not in declared]
@@ -178,7 +187,9 @@ def summarise(got, records, truth, change, start, infos=None):
                d['detected_s'] >= change.time_s]
         if hit:
             out.update(found=True, delay_s=hit[0]['detected_s'] - change.time_s,
-                       what=hit[0]['what'])
+                       what=hit[0]['what'], delay_views=views_between(
+                           out_dir, change.camera, start + int(change.time_s * 1e9),
+                           start + int(hit[0]['detected_s'] * 1e9)))
         out['false'] = len(out['declared']) - (1 if hit else 0)
         if infos is not None:
             t_change = start + int(change.time_s * 1e9)
@@ -221,9 +232,10 @@ def main(argv=None):
         cameras = list(load_settings(params).inputs.camera_names)
         base = dict(cell=name, case=label, changed=None if change is None else change.camera)
         t0 = time.perf_counter()
-        got, recs = offline_run(bag, params, os.path.join(tmp, f'offline_{k}'))
+        out = os.path.join(tmp, f'offline_{k}')
+        got, recs = offline_run(bag, params, out)
         rows.append(dict(base, run='offline', wall_s=time.perf_counter() - t0,
-                         **summarise(got, recs, truth, change, start)))
+                         **summarise(got, recs, truth, change, start, out)))
         out = os.path.join(tmp, f'node_{k}')
         os.makedirs(out)
         got, recs, infos, stats, final = node_run(bag, params, out, args.rate, cameras, env)
@@ -231,7 +243,7 @@ def main(argv=None):
         rows.append(dict(base, run=f'node {args.rate:g}x', wall_s=stats.wall_s,
                          images=f'{int(final.get("input_frames", 0))}/{sent}',
                          solves=int(final.get('solves', 0)),
-                         **summarise(got, recs, truth, change, start, infos)))
+                         **summarise(got, recs, truth, change, start, out, infos)))
         for r in rows[-2:]:
             print(json.dumps(r), flush=True)
     text = render(rows, args)
@@ -259,7 +271,8 @@ def render(rows, args):
                                                          else f'{w[1]:.1f}'))
         body.append([r['cell'], r['case'], r['run'], r.get('images', '-'), r.get('solves', '-'),
                      ch or '-', ('yes' if r['found'] else 'NO') if ch else '-',
-                     _fmt(r.get('delay_s'), '.1f'), r.get('what', '-'), r['false'],
+                     r.get('delay_views', '-'), _fmt(r.get('delay_s'), '.1f'),
+                     r.get('what', '-'), r['false'],
                      r['reports'],
                      withdrawn,
                      _fmt(err[0] if err else None, '.3f'), _fmt(err[1] if err else None, '.1f'),
@@ -268,21 +281,22 @@ def render(rows, args):
                      len(r['errors'])])
     return '\n'.join([
         '## Cameras that move, in the live node (bench/node_changes.py)', '',
-        f'The recordings of *changes-images* (each cell {args.duration:.0f} s, seed '
-        f'{args.seed}, one lamp: unchanged; its second camera knocked by {KNOCK[0]:g} deg and '
-        f'{KNOCK[1]:g} mm at mid-session; its last camera\'s focal length {FOCUS_PERCENT:g} % '
-        f'longer at mid-session) replayed at {args.rate:g}x over DDS into the node (its own '
-        f'process, the cell\'s parameters, the node\'s defaults), and calibrated offline '
-        f'(`calibrate_bag`, latency pass included). Images: received by the node / published. '
-        f'Found: the changed camera declared changed after the change; delay: bag seconds from '
-        f'the change to the declaration; false: other changes declared; reports: '
+        f'The recordings of *changes-images* (each cell {args.duration:.0f} s, seed {args.seed}, '
+        f'one lamp: unchanged; its second camera knocked by {KNOCK[0]:g} deg and {KNOCK[1]:g} mm '
+        f'at mid-session; its last camera\'s focal length {FOCUS_PERCENT:g} % longer at '
+        f'mid-session) replayed at {args.rate:g}x over DDS into the node (its own process, the '
+        f'cell\'s parameters, the node\'s defaults), and calibrated offline (`calibrate_bag`, '
+        f'latency pass included). Images: received by the node / published. Found: the changed '
+        f'camera declared changed after the change; delay: its views the run stored and bag '
+        f'seconds from the change to the declaration; false: other changes declared; reports: '
         f'disagreements reported, nothing retired. Withdrawn: the changed camera\'s CameraInfo '
         f'published uncalibrated (K zero) from / until (bag seconds; "end": never calibrated '
-        f'again). Errors against the truth at the end of the recording, of the changed '
-        f'camera\'s last published (node) or written (offline) calibration: rotation, centre, '
-        f'focal length; the worst unchanged camera\'s rotation (unchanged recordings: every '
-        f'camera). Cameras: those with a calibration at the end. Measured on {machine()}.', '',
-        table(['cell', 'case', 'run', 'images', 'solves', 'changed', 'found', 'delay s', 'called',
+        f'again). Errors against the truth at the end of the recording, of the changed camera\'s '
+        f'last published (node) or written (offline) calibration: rotation, centre, focal '
+        f'length; the worst unchanged camera\'s rotation (unchanged recordings: every camera). '
+        f'Cameras: those with a calibration at the end. Measured on {machine()}.', '',
+        table(['cell', 'case', 'run', 'images', 'solves', 'changed', 'found', 'delay views',
+               'delay s', 'called',
                'false', 'reports', 'withdrawn s', 'rotation deg', 'centre mm', 'focal %',
                'unchanged worst rotation deg', 'cameras'], body)])
 
