@@ -243,6 +243,7 @@ def main(argv=None):
         rows.append(dict(base, run=f'node {args.rate:g}x', wall_s=stats.wall_s,
                          images=f'{int(final.get("input_frames", 0))}/{sent}',
                          solves=int(final.get('solves', 0)),
+                         rejected=int(final.get('solves_rejected', 0)),
                          **summarise(got, recs, truth, change, start, out, infos)))
         for r in rows[-2:]:
             print(json.dumps(r), flush=True)
@@ -269,7 +270,9 @@ def render(rows, args):
         w = r.get('withdrawn_s')
         withdrawn = '-' if not w else (f'{w[0]:.1f}-' + ('end' if w[1] is None
                                                          else f'{w[1]:.1f}'))
-        body.append([r['cell'], r['case'], r['run'], r.get('images', '-'), r.get('solves', '-'),
+        solves = ('-' if 'solves' not in r else f'{r["solves"]}' +
+                  (f' ({r["rejected"]})' if 'rejected' in r else ''))
+        body.append([r['cell'], r['case'], r['run'], r.get('images', '-'), solves,
                      ch or '-', ('yes' if r['found'] else 'NO') if ch else '-',
                      r.get('delay_views', '-'), _fmt(r.get('delay_s'), '.1f'),
                      r.get('what', '-'), r['false'],
@@ -286,7 +289,8 @@ def render(rows, args):
         f'at mid-session; its last camera\'s focal length {FOCUS_PERCENT:g} % longer at '
         f'mid-session) replayed at {args.rate:g}x over DDS into the node (its own process, the '
         f'cell\'s parameters, the node\'s defaults), and calibrated offline (`calibrate_bag`, '
-        f'latency pass included). Images: received by the node / published. Found: the changed '
+        f'latency pass included). Images: received by the node / published. Solves: the '
+        f'node\'s, (those refused) where counted. Found: the changed '
         f'camera declared changed after the change; delay: its views the run stored and bag '
         f'seconds from the change to the declaration; false: other changes declared; reports: '
         f'disagreements reported, nothing retired. Withdrawn: the changed camera\'s CameraInfo '
