@@ -199,6 +199,16 @@ class ChangeTracker:
             return
         self.monitor, self.pending = monitor, None
 
+    def disputed(self) -> bool:
+        """
+        Return True while the test has views under suspicion: a camera's statistic climbing.
+
+        A solve that runs meanwhile takes in views the calibration does not explain, perhaps
+        a change's first ones; the engine then refuses it if its residuals rose clearly
+        (``engine._residuals_worse``), rather than publish every camera bent towards them.
+        """
+        return any(m is not None and m.busy for m in (self.monitor, self.pending))
+
     def observe(self, sample) -> Optional[ChangeEvent]:
         """Test one new sample; return the event if a change is declared."""
         if self.monitor is None or sample.reference_points is not None:

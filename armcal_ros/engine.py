@@ -13,8 +13,9 @@ are warm-started from the current calibration.
 A new result replaces the current calibration only if it is not clearly worse: it must have
 converged, and no camera's image noise estimated from its residuals (the RMS corrected for the
 degrees of freedom its parameters took, :func:`_residuals_worse`) may exceed
-``reject_rms_ratio`` x the previous one (or more where the two estimates' own scatter allows;
-``previous + reject_rms_margin_px`` for a calibration saved without its redundancy), nor its inlier
+``max(reject_rms_ratio x previous, previous + reject_rms_margin_px)`` - while the change test
+has views under suspicion, ``reject_rms_ratio`` x previous or what the two estimates' own
+scatter allows, no absolute margin - nor its inlier
 fraction drop by more than ``reject_inlier_drop`` and by more than its counting noise explains
 (fractions as expected rates, :func:`inlier_fall_is_clear`).  A burst of bad detections
 therefore cannot overwrite a good calibration; the rejection is reported with its reason.
@@ -200,7 +201,7 @@ def pooled_light_arrays(arrays):
 NOISE_RISE_ALPHA = 1e-3
 
 
-def _residuals_worse(old, new, ratio, margin_px, alpha=NOISE_RISE_ALPHA):
+def _residuals_worse(old, new, ratio, margin_px, disputed=False, alpha=NOISE_RISE_ALPHA):
     """
     Say how the new fit of a camera is clearly worse than the old one, or return ''.
 
@@ -209,29 +210,36 @@ def _residuals_worse(old, new, ratio, margin_px, alpha=NOISE_RISE_ALPHA):
     A fit whose parameters absorb its few observations has an RMS near zero that says nothing
     about the noise (a first solve over three views of a camera: 0.000 px), and the next
     solve's honest 0.99 px is then no reason to refuse it.  Without redundancy in the old fit
-    there is no yardstick and nothing is refused on these grounds.
-
-    The new noise may exceed the old by ``ratio`` (new places, a model the data now ask more
-    of), and by what two estimates of one noise differ by: for Gaussian noise s_new^2 / s_old^2
-    follows Snedecor's F(r_new, r_old), so the ratio of the two is allowed the square root of
-    its upper ``alpha`` quantile where that is larger (about 3 x over ten degrees of freedom
-    each, 1.24 x over two hundred).  The limit is relative: at the 0.01 px of a
-    ball pooled over a dwell, an absolute margin of a few tenths of a pixel would let a solve
-    thirty times worse through (one that took in the first views of a knocked camera).
-    Calibrations saved before the redundancy was recorded fall back to the RMS, allowed
+    there is no yardstick and nothing is refused on these grounds.  The new noise is allowed
     ``max(ratio x previous, previous + margin_px)``.
+
+    While the change test is ``disputed`` (it has views the calibration does not explain, a
+    change's first ones perhaps) the margin is relative instead: the new noise may exceed the
+    old by ``ratio`` and by what two estimates of one noise differ by - for Gaussian noise
+    s_new^2 / s_old^2 follows Snedecor's F(r_new, r_old), so the ratio is allowed the square
+    root of its upper ``alpha`` quantile where that is larger (about 3 x over ten degrees of
+    freedom each, 1.24 x over two hundred).  At the 0.01 px of a ball pooled over a dwell a
+    margin of tenths of a pixel would let through a solve that took in a knocked camera's
+    first views, thirty times worse, and publish it for every camera until the change is
+    declared.  Without a dispute the absolute margin stays: a rise there is the model meeting
+    new places (a recalibrated camera rejoining the solve doubled the others' noise at 0.006
+    px), and a refusal would be compared with the same old calibration at every later solve.
+    Calibrations saved before the redundancy was recorded are compared by their RMS.
     """
     a, b, what = old.sigma_px, new.sigma_px, 'image noise from its residuals'
+    relative = disputed and np.isfinite(old.redundancy)
     if not np.isfinite(old.redundancy):
         a, b, what = old.rms_px, new.rms_px, 'reprojection RMS'
-        limit = max(ratio * a, a + margin_px)
-    else:
+    if not (np.isfinite(a) and np.isfinite(b)):
+        return ''
+    if relative:
         r_new = new.redundancy if np.isfinite(new.redundancy) and new.redundancy > 0 else 1.0
         f = float(f_distribution.isf(alpha, r_new, max(old.redundancy, 1e-3)))
         limit = a * max(ratio, math.sqrt(f) if np.isfinite(f) else math.inf)
-    if not (np.isfinite(a) and np.isfinite(b)):
-        return ''
-    return (f'{what} {b:.3f} px > {limit:.3f} px allowed after {a:.3f} px' if b > limit
+        why = ' while the change test weighs views that disagree with the calibration'
+    else:
+        limit, why = max(ratio * a, a + margin_px), ''
+    return (f'{what} {b:.3f} px > {limit:.3f} px allowed after {a:.3f} px{why}' if b > limit
             else '')
 
 
@@ -1061,12 +1069,14 @@ class CalibrationEngine:
             s = self.settings
             with self._lock:
                 changed = set(self.changes.recalibrating)
+                disputed = self.settings.detect_changes and self.changes.disputed()
             for name, c in new.cameras.items():
                 if name not in old.cameras or name in changed:
                     # A changed camera's old fit is another epoch's: no yardstick.
                     continue
                 o = old.cameras[name]
-                worse = _residuals_worse(o, c, s.reject_rms_ratio, s.reject_rms_margin_px)
+                worse = _residuals_worse(o, c, s.reject_rms_ratio, s.reject_rms_margin_px,
+                                         disputed)
                 if worse:
                     return SolveOutcome(False, f'rejected: {name} {worse}', result, new, n,
                                         elapsed)
