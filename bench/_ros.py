@@ -20,3 +20,24 @@ def follow_calibration_diagnostics(node):
             diag.update(v)
     node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
     return diag
+
+
+def wait_for_diagnostics(diag, timeout=60.0):
+    """Wait until ``diag`` (:func:`follow_calibration_diagnostics`) fills; raise if it does not."""
+    import time
+    deadline = time.monotonic() + timeout
+    while not diag and time.monotonic() < deadline:
+        time.sleep(0.2)
+    if not diag:
+        raise RuntimeError(f'the node did not come up (no diagnostics in {timeout:g} s)')
+
+
+def interrupt(proc, timeout=30.0):
+    """SIGINT the node process ``proc`` and wait for it (killed after ``timeout`` s)."""
+    import signal
+    import subprocess
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()

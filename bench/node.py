@@ -34,7 +34,6 @@ CPU and latency are reported for (1x by default).
 
 import argparse
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -45,7 +44,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _report import machine, table, write_json, write_section  # noqa: E402
-from _ros import follow_calibration_diagnostics  # noqa: E402
+from _ros import (follow_calibration_diagnostics, interrupt,  # noqa: E402
+                  wait_for_diagnostics)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
@@ -181,11 +181,7 @@ def run_rate(bag, params, rate, gt, out_dir, env, cameras, extra=()):
                 by_camera[topic_camera[topic]].append((wall, stamp_ns(msg.header.stamp)))
     cpu = CpuSampler(node_proc.pid)
     try:
-        deadline = time.monotonic() + 60
-        while not diag and time.monotonic() < deadline:
-            time.sleep(0.2)
-        if not diag:
-            raise RuntimeError('the node did not come up (no diagnostics in 60 s)')
+        wait_for_diagnostics(diag)
         cpu.start()
         time.sleep(1.5)
         t0 = time.monotonic()
@@ -199,11 +195,7 @@ def run_rate(bag, params, rate, gt, out_dir, env, cameras, extra=()):
     finally:
         cpu.stop.set()
         t_sig = time.monotonic()
-        node_proc.send_signal(signal.SIGINT)
-        try:
-            node_proc.wait(30)
-        except subprocess.TimeoutExpired:
-            node_proc.kill()
+        interrupt(node_proc)
         shutdown_s = time.monotonic() - t_sig
         executor.shutdown()
         spin.join(10)

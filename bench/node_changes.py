@@ -25,7 +25,6 @@ and docs/bench/node_changes.json.
 import argparse
 import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -37,7 +36,8 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _report import machine, table, write_json, write_section  # noqa: E402
-from _ros import follow_calibration_diagnostics  # noqa: E402
+from _ros import (follow_calibration_diagnostics, interrupt,  # noqa: E402
+                  wait_for_diagnostics)
 from changes_images import _cases, FOCUS_PERCENT, KNOCK, record  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -129,22 +129,14 @@ def node_run(bag, params, out_dir, rate, cameras, env):
     spin = threading.Thread(target=executor.spin, daemon=True)
     spin.start()
     try:
-        deadline = time.monotonic() + 60
-        while not diag and time.monotonic() < deadline:
-            time.sleep(0.2)
-        if not diag:
-            raise RuntimeError('the node did not come up (no diagnostics in 60 s)')
+        wait_for_diagnostics(diag)
         time.sleep(1.5)
         stats = replay(node, bag, rate=rate, discovery_timeout=5.0)
         # The last dwell closes on the idle flush; a solve due at the end gets its period.
         time.sleep(3.0 + 12.0 / rate)
         final = dict(diag)
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        interrupt(proc)
         executor.shutdown()
         spin.join(10)
         node.destroy_node()

@@ -34,7 +34,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _report import machine, table, write_json, write_section  # noqa: E402
-from _ros import follow_calibration_diagnostics  # noqa: E402
+from _ros import follow_calibration_diagnostics, interrupt  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
@@ -247,11 +247,7 @@ def main():
         abuse.stop.set()
         stop_replay(replay)
         final = dict(diag)
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        interrupt(proc)
         executor.shutdown()
         node.destroy_node()
         ctx.try_shutdown()
