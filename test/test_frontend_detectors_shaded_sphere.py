@@ -230,3 +230,73 @@ def test_a_ball_over_a_textured_scene_is_fitted_over_it():
     assert mean['over the scene'] < 0.1 and mean['clipped'] > 0.3, mean
     with pytest.raises(ValueError, match='scene'):
         fit_shaded_sphere(frame - scene, u0, v0, start, radius0, scene=scene[1:])
+
+
+@pytest.mark.slow
+def test_the_lamps_side_decides_between_near_equal_fits_over_a_textured_scene():
+    """
+    A lamp-lit ball of 2 px over a textured scene (40 DN), known from five noisy frames.
+
+    The frames have 3 DN read noise and shot noise.  Some views fit nearly as well lit from
+    the other side and shifted by a pixel or more towards where the ball is lit (the UR5
+    cell's lamp; the scene's noise tips the balance).  Of the fits taken with a light prior
+    from the earlier fits' directions, as the detector does, fewer are that far off, and the
+    99th percentile is smaller (measured over these 600 views: 2 fits more than 0.75 px off
+    against none, 99th percentile 0.50 against 0.39 px).
+    """
+    from armcal_ros.sim.cells import CELLS
+    from armcal_ros.sim.render import clutter_scene
+    from armcal_ros.frontend.detectors.shaded_sphere import light_prior_of
+    cell = CELLS['ur5-2cam']
+    sim = simulate_cell(cell.scenario, 5, 90.0, cell.sim_settings(duration=90.0))
+    st, f = sim.settings, sim.frames
+    sensor = replace(st.sensor, clutter_level=40.0)
+    rng = np.random.default_rng(0)
+    scenes, lights = {}, {}
+    errors = {'without': [], 'with': []}
+    for i in np.flatnonzero(f.occlusion == OCCLUSION_NONE)[:1200:2]:
+        c = int(f.camera[i])
+        cam = sim.cameras[c]
+        scene = scenes.setdefault(c, clutter_scene(cam.width, cam.height, sensor, rng))
+        X = f.marker[i]
+        u0, v0, signal, alpha = marker_signal(cam, X[None], st.marker_radius, sensor, 0.8,
+                                              margin=4, with_alpha=True)
+        h, w = signal.shape
+        if u0 < 0 or v0 < 0 or u0 + w > cam.width or v0 + h > cam.height:
+            continue
+        behind = scene[v0:v0 + h, u0:u0 + w]
+        frame = _noisy(signal + (1.0 - alpha) * behind + rng.normal(0, 3.0, signal.shape), rng)
+        known = np.median([_noisy(behind + rng.normal(0, 3.0, behind.shape), rng)
+                           for _ in range(5)], axis=0)
+        truth = cam.project(X[None])[0]
+        start = truth + rng.normal(0, 0.3, 2)
+        radius0 = max(cam.fx * st.marker_radius / cam.to_camera(X[None])[0, 2], 1.0)
+        seen = lights.setdefault(c, [])
+        prior = light_prior_of(seen[-15:]) if len(seen) >= 5 else None
+        for key, p in (('without', None), ('with', prior)):
+            fit = fit_shaded_sphere(frame - known, u0, v0, start, radius0, scene=known,
+                                    light_prior=p)
+            if fit.ok:
+                errors[key].append(np.hypot(*(fit.uv - truth)))
+                if key == 'with':
+                    seen.append(fit.shading[1:] / np.linalg.norm(fit.shading[1:]))
+    far = {k: int(np.sum(np.array(e) > 0.75)) for k, e in errors.items()}
+    p99 = {k: float(np.percentile(e, 99)) for k, e in errors.items()}
+    # Without the prior some fits are in the wrong minimum (else the test could not fail).
+    assert len(errors['with']) > 500 and far['without'] >= 1, (far, p99)
+    assert far['with'] < far['without'] and p99['with'] < 0.9 * p99['without'], (far, p99)
+
+
+def test_a_light_prior_is_fitted_to_directions():
+    from armcal_ros.frontend.detectors.shaded_sphere import LIGHT_KAPPA_MAX, light_prior_of
+    rng = np.random.default_rng(0)
+    axis = np.array([0.0, -0.8, 0.6])
+    d = axis + rng.normal(0, 0.2, (200, 3))       # ~ a von Mises-Fisher of kappa 1 / 0.2^2
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    direction, kappa = light_prior_of(d)
+    assert direction @ axis > 0.99 and 15.0 < kappa <= LIGHT_KAPPA_MAX
+    # Directions that spread all round (an LED turning with the tool) give no prior to speak of.
+    spread = rng.normal(size=(200, 3))
+    spread /= np.linalg.norm(spread, axis=1)[:, None]
+    assert light_prior_of(spread)[1] < 0.5
+    assert light_prior_of(np.zeros((0, 3)))[1] == 0.0

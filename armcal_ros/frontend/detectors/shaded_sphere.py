@@ -177,10 +177,16 @@ COLD_RACE_ITERATIONS = 6
 #: more than 0.5 px off: 261 of 1355 against 292), for about a third more time a cold fit;
 #: on 900 lit balls over a dark ground nothing changed (99th percentile 0.127 px).
 COLD_FINALISTS = 4
+#: The largest concentration of the light-direction prior (:func:`fit_shaded_sphere`
+#: ``light_prior``).  A lamp 1.5 m above a workspace of +-0.4 m is seen from one camera in
+#: directions some +-15 degrees apart, a von Mises-Fisher concentration of about 1 / 0.26^2 ~ 15;
+#: at 20 the prior can tip a near tie between two minima (log-odds up to 2 x 20) but not outweigh
+#: an image that clearly shows the light elsewhere (a lamp moved or switched).
+LIGHT_KAPPA_MAX = 20.0
 
 
 def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
-                      max_iterations=30, tolerance=3e-3, scene=None):
+                      max_iterations=30, tolerance=3e-3, scene=None, light_prior=None):
     """
     Fit the shaded-sphere model (module doc) to ``patch`` and return a :class:`ShadedFit`.
 
@@ -198,6 +204,20 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
     coverage (the second basis) and k ~ 1 a linear parameter.  Fitting the ball alone to a
     frame minus its scene, clipped at zero, shaded the disc with the scene it hides (a ball
     over clutter 0.15-0.3 px off on the simulator's cluttered cell).
+
+    ``light_prior`` (direction (3,), kappa): where the light came from in the camera's recent
+    fits, a unit vector of (p1, p2, p3) and the concentration of a von Mises-Fisher density
+    about it.  A cold fit then takes, of the race's finalists, the one of least
+
+        cost / (2 s^2) - kappa d . l,     s^2 = least cost / (pixels - parameters),
+
+    (d its own light's direction, l the prior's): the posterior's mode when the image's noise
+    is white, rather than the least cost.  Why: a ball over a textured scene can fit nearly as
+    well lit from the opposite side and shifted towards where its lit part is (measured on the
+    simulator's lamp-lit textured UR5 cell: whole dwells 1.1-1.8 px off, their cost 1-4 % below
+    the right minimum's), and what tells the two apart is that a lamp fixed in the cell lights
+    the ball from nearly the same side at every place.  An LED that turns with the tool gives
+    fits whose directions spread, hence a small kappa and a prior that decides nothing.
     """
     patch = np.asarray(patch)
     if patch.ndim != 2 or min(patch.shape) < 5:
@@ -221,17 +241,24 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
                                     max_iterations, tolerance)
     else:
         race = max(1, min(COLD_RACE_ITERATIONS, max_iterations))
+        prior = light_prior is not None and light_prior[1] > 0
+        starts = COLD_STARTS + ((tuple(light_prior[0]),) if prior else ())
         runs = [_levenberg_marquardt(model, np.r_[geometry, 0.4 * top, 0.6 * top * np.asarray(
-            light), occlusion], radius0, top, 1e-3, race, tolerance) for light in COLD_STARTS]
-        runs.sort(key=lambda r: r[1])
-        best = None
+            light), occlusion], radius0, top, 1e-3, race, tolerance) for light in starts]
+        if prior:
+            runs.sort(key=_posterior_score(min(r[1] for r in runs), model.y.size, light_prior))
+        else:
+            runs.sort(key=lambda r: r[1])
+        finals = []
         for theta, cost, it, converged, lam in runs[:COLD_FINALISTS]:
             if not converged and it < max_iterations:
                 theta, cost, more, converged, lam = _levenberg_marquardt(
                     model, theta, radius0, top, lam, max_iterations - it, tolerance)
                 it += more
-            if best is None or cost < best[1]:
-                best = (theta, cost, it, converged, lam)
+            finals.append((theta, cost, it, converged, lam))
+        best = min(finals, key=lambda r: r[1])
+        if prior:
+            best = min(finals, key=_posterior_score(best[1], model.y.size, light_prior))
     theta, cost, it, converged, _ = best
     g, coef = theta[:4], theta[4:]
     rms = math.sqrt(cost / model.y.size)
@@ -246,6 +273,39 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
     return ShadedFit(uv=g[:2].copy(), radius=float(g[2]), sigma=float(g[3]),
                      shading=coef[1:5].copy(), background=float(coef[0]), rms=rms,
                      iterations=it, status=status, message=message)
+
+
+def _posterior_score(least, pixels, light_prior):
+    """Return the key cost / (2 s^2) - kappa d . l of a run (:func:`fit_shaded_sphere`)."""
+    direction, kappa = light_prior
+    direction = np.asarray(direction, float).reshape(3)
+    kappa = min(float(kappa), LIGHT_KAPPA_MAX)
+    s2 = max(least, 1e-12) / max(pixels - 10, 1)
+
+    def score(run):
+        light = run[0][6:9]
+        norm = np.linalg.norm(light)
+        agree = float(light @ direction) / norm if norm > 0 else 0.0
+        return run[1] / (2.0 * s2) - kappa * agree
+    return score
+
+
+def light_prior_of(directions):
+    """
+    Return (direction (3,), kappa) of a von Mises-Fisher density fitted to unit ``directions``.
+
+    kappa by Banerjee et al.'s (2005) approximation R (3 - R^2) / (1 - R^2), R the mean
+    resultant length; (zeros, 0) for an empty or balanced set.
+    """
+    d = np.asarray(directions, float).reshape(-1, 3)
+    if len(d) == 0:
+        return np.zeros(3), 0.0
+    mean = d.mean(axis=0)
+    r = float(np.linalg.norm(mean))
+    if r < 1e-9:
+        return np.zeros(3), 0.0
+    r_ = min(r, 1.0 - 1e-9)
+    return mean / r, min(r_ * (3.0 - r_ * r_) / (1.0 - r_ * r_), LIGHT_KAPPA_MAX)
 
 
 def _levenberg_marquardt(model, theta, radius0, top, lam, max_iterations, tolerance):

@@ -14,7 +14,7 @@ import cv2
 
 from armcal_ros.frontend.detectors.base import (check_fraction, check_positive, Detection,
                                                 Detector, to_gray, white_level)
-from armcal_ros.frontend.detectors.shaded_sphere import fit_shaded_sphere
+from armcal_ros.frontend.detectors.shaded_sphere import fit_shaded_sphere, light_prior_of
 
 
 def _median(values):
@@ -86,7 +86,10 @@ class SphereDetector(Detector):
     evenly lit ball and ~1-2 ms per frame (the front end detects only still frames: a
     motion-blurred ball is not the model).  Each fit starts from the previous frame's when the
     ball has not moved (a dwell's frames converge in two or three iterations), from six light
-    directions otherwise.  A fit that fails gives no detection
+    directions otherwise - and, once the camera has a few fits, from where its recent fits
+    were lit, which also decides between minima that fit nearly alike (a lamp fixed in the
+    cell lights the ball from nearly the same side at every place; :func:`.fit_shaded_sphere`
+    ``light_prior``).  A fit that fails gives no detection
     (``last_status = 'shaded_fit_failed'``): a centroid in its place would carry the bias.
 
     Static scene (``static_scene``, on by default): a camera exposed for the cell rather than
@@ -145,6 +148,14 @@ class SphereDetector(Detector):
     #: size alone; a start 1.5 x the moments' size, raced beside it, gave 3 but made the demo
     #: bag's front end 1.6 x as dear.
     RADIUS_HINT_FITS = 9
+    #: A cold fit prefers, of minima that fit nearly alike, the one lit from where the camera's
+    #: last ``LIGHT_PRIOR_FITS`` fits were (a von Mises-Fisher prior fitted to their
+    #: directions, :func:`.fit_shaded_sphere` ``light_prior``), once it has at least
+    #: ``LIGHT_PRIOR_MIN`` of them.  Directions with no preferred side (a ball that glows alike
+    #: all round, whose fitted light is noise) have a mean resultant length near 1 / sqrt(n):
+    #: kappa about 1.4 from 5 of them and 0.7 from 15 (medians), too weak to decide much.
+    LIGHT_PRIOR_FITS = 15
+    LIGHT_PRIOR_MIN = 5
     #: Images kept for the static scene, how often one is kept (while it is learnt, then
     #: after), and after how many intervals one is kept even if the marker has not moved.
     SCENE_FRAMES = 5
@@ -201,6 +212,7 @@ class SphereDetector(Detector):
         self.centre = centre
         self._fit_start = None
         self._radii = deque(maxlen=self.RADIUS_HINT_FITS)
+        self._lights = deque(maxlen=self.LIGHT_PRIOR_FITS)
         self._fit_now = True
         self._scene_frames = []
         self._scene = None
@@ -516,6 +528,8 @@ class SphereDetector(Detector):
             # start radius of 0 ended a whole `armcal calibrate` run): the blob's then.
             if got is not None and got[1] >= self.min_radius_px:
                 at, size = got
+        prior = light_prior_of(self._lights) if len(self._lights) >= self.LIGHT_PRIOR_MIN \
+            else None
         own = math.sqrt(max(size ** 2 - 4.0 * sigma0 ** 2, 0.25 * size ** 2))
         radius0 = max(own, hint)
         fit = None
@@ -525,7 +539,8 @@ class SphereDetector(Detector):
         if fit is None or not fit.ok or fit.rms > self.REFIT_RMS * start[5]:
             # No start, a failed one, or a fit much worse than the last: from several lights
             # (a warm start can carry a wrong minimum from frame to frame).
-            cold = fit_shaded_sphere(patch, u0, v0, at, radius0, sigma0, scene=behind)
+            cold = fit_shaded_sphere(patch, u0, v0, at, radius0, sigma0, scene=behind,
+                                     light_prior=prior)
             if fit is None or not fit.ok or (cold.ok and cold.rms < fit.rms):
                 fit = cold
         # The fit may lie up to a radius from the blob's centroid - the ball's recent radius
@@ -537,13 +552,17 @@ class SphereDetector(Detector):
             # radii, and a start from them then fails on every later ball, so none of its fits
             # enters them again - the camera fell silent for good after a 0.25 deg knock of
             # the lamp-lit cluttered cell.  From the blob's own size the ball is found again.
-            again = fit_shaded_sphere(patch, u0, v0, at, own, sigma0, scene=behind)
+            again = fit_shaded_sphere(patch, u0, v0, at, own, sigma0, scene=behind,
+                                      light_prior=prior)
             if again.ok:
                 fit = again
         if not fit.ok or np.hypot(*(fit.uv - centroid)) > reach:
             self._fit_start = None
             return None
         self._radii.append(fit.radius)
+        light = np.linalg.norm(fit.shading[1:4])
+        if light > 0:
+            self._lights.append(fit.shading[1:4] / light)
         self._fit_start = (centroid, fit.uv - centroid, fit.radius, fit.sigma, fit.shading,
                            fit.rms)
         return fit.uv
