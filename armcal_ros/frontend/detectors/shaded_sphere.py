@@ -209,15 +209,17 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
     fits, a unit vector of (p1, p2, p3) and the concentration of a von Mises-Fisher density
     about it.  A cold fit then takes, of the race's finalists, the one of least
 
-        cost / (2 s^2) - kappa d . l,     s^2 = least cost / (pixels - parameters),
+        cost / (2 s^2) - kappa d . l,     s^2 = least cost / (pixels - 10),
 
-    (d its own light's direction, l the prior's): the posterior's mode when the image's noise
-    is white, rather than the least cost.  Why: a ball over a textured scene can fit nearly as
-    well lit from the opposite side and shifted towards where its lit part is (measured on the
-    simulator's lamp-lit textured UR5 cell: whole dwells 1.1-1.8 px off, their cost 1-4 % below
-    the right minimum's), and what tells the two apart is that a lamp fixed in the cell lights
-    the ball from nearly the same side at every place.  An LED that turns with the tool gives
-    fits whose directions spread, hence a small kappa and a prior that decides nothing.
+    (d its own light's direction, l the prior's; 10 bounds the fit's parameters): the
+    posterior's mode when the image's noise is white, rather than the least cost.  The race is
+    ranked the same way, and the prior's direction is one more start.  Why: a ball over a
+    textured scene can fit nearly as well lit from the opposite side and shifted towards where
+    its lit part is (measured on the simulator's lamp-lit textured UR5 cell: whole dwells
+    1.1-1.8 px off, their residual RMS 1.5-3.5 % below the right minimum's), and what tells the
+    two apart is that a lamp fixed in the cell lights the ball from nearly the same side at
+    every place.  An LED that turns with the tool gives fits whose directions spread, hence a
+    small kappa and a prior that decides little.
     """
     patch = np.asarray(patch)
     if patch.ndim != 2 or min(patch.shape) < 5:
@@ -256,9 +258,11 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
                     model, theta, radius0, top, lam, max_iterations - it, tolerance)
                 it += more
             finals.append((theta, cost, it, converged, lam))
-        best = min(finals, key=lambda r: r[1])
         if prior:
-            best = min(finals, key=_posterior_score(best[1], model.y.size, light_prior))
+            least = min(r[1] for r in finals)
+            best = min(finals, key=_posterior_score(least, model.y.size, light_prior))
+        else:
+            best = min(finals, key=lambda r: r[1])
     theta, cost, it, converged, _ = best
     g, coef = theta[:4], theta[4:]
     rms = math.sqrt(cost / model.y.size)

@@ -528,8 +528,6 @@ class SphereDetector(Detector):
             # start radius of 0 ended a whole `armcal calibrate` run): the blob's then.
             if got is not None and got[1] >= self.min_radius_px:
                 at, size = got
-        prior = light_prior_of(self._lights) if len(self._lights) >= self.LIGHT_PRIOR_MIN \
-            else None
         own = math.sqrt(max(size ** 2 - 4.0 * sigma0 ** 2, 0.25 * size ** 2))
         radius0 = max(own, hint)
         fit = None
@@ -540,7 +538,7 @@ class SphereDetector(Detector):
             # No start, a failed one, or a fit much worse than the last: from several lights
             # (a warm start can carry a wrong minimum from frame to frame).
             cold = fit_shaded_sphere(patch, u0, v0, at, radius0, sigma0, scene=behind,
-                                     light_prior=prior)
+                                     light_prior=self._light_prior())
             if fit is None or not fit.ok or (cold.ok and cold.rms < fit.rms):
                 fit = cold
         # The fit may lie up to a radius from the blob's centroid - the ball's recent radius
@@ -553,7 +551,7 @@ class SphereDetector(Detector):
             # enters them again - the camera fell silent for good after a 0.25 deg knock of
             # the lamp-lit cluttered cell.  From the blob's own size the ball is found again.
             again = fit_shaded_sphere(patch, u0, v0, at, own, sigma0, scene=behind,
-                                      light_prior=prior)
+                                      light_prior=self._light_prior())
             if again.ok:
                 fit = again
         if not fit.ok or np.hypot(*(fit.uv - centroid)) > reach:
@@ -566,6 +564,12 @@ class SphereDetector(Detector):
         self._fit_start = (centroid, fit.uv - centroid, fit.radius, fit.sigma, fit.shading,
                            fit.rms)
         return fit.uv
+
+    def _light_prior(self):
+        """Return the light-direction prior of the camera's recent fits, or None (too few)."""
+        if len(self._lights) < self.LIGHT_PRIOR_MIN:
+            return None
+        return light_prior_of(self._lights)
 
     _COARSE = 4
     _COARSE_MIN_PIXELS = 160 * 120
