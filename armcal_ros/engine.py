@@ -1065,6 +1065,13 @@ class CalibrationEngine:
             new.model = model      # e.g. 'correlated+mount': the board solver's own name
         with self._lock:
             old = self._current
+        if not new.cameras:
+            return SolveOutcome(False, 'rejected: no camera\'s fit is a calibration (' + '; '.join(
+                f'{k}: {v}' for k, v in new.not_calibrated.items()) + ')', result, new, n,
+                elapsed)
+        # A degenerate camera is left out: it keeps its previous calibration (below), or has
+        # none yet; the others' are accepted.
+        unusable = ''.join(f'; {k} not calibrated: {v}' for k, v in new.not_calibrated.items())
         if old is not None:
             s = self.settings
             with self._lock:
@@ -1092,7 +1099,7 @@ class CalibrationEngine:
             if dropped:
                 for k in dropped:
                     new.cameras[k] = old.cameras[k]
-        return SolveOutcome(True, result.message, result, new, n, elapsed)
+        return SolveOutcome(True, result.message + unusable, result, new, n, elapsed)
 
     def _finish(self, outcome: SolveOutcome):
         with self._lock:

@@ -478,8 +478,9 @@ def make_report(settings: Settings, engine, outcome, front: FrontEnd, timings):
         for name in settings.inputs.camera_names:
             if name not in cams:
                 r = init.get(name)
+                why = cal.not_calibrated.get(name)
                 cams[name] = dict(status='not calibrated',
-                                  message=(r.message if r is not None else
+                                  message=(why if why else r.message if r is not None else
                                            'no usable images'))
     target = None
     board = engine.settings.board

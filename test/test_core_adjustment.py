@@ -208,3 +208,40 @@ def test_inv3_matches_lapack_on_point_blocks_of_every_conditioning():
         ref = np.linalg.inv(V)
         err = np.max(np.abs(_inv3(V) - ref)) / np.max(np.abs(ref))
         assert err < 1e-12 * cond + 1e-14, (cond, err)
+
+
+def test_a_camera_whose_fit_explains_a_minority_of_its_points_is_degenerate():
+    # cam2's views are 70 % gross mismatches (15-40 px, random direction): no calibration of
+    # cam2 can come out of that, and its estimate must say so rather than claim 'ok'.
+    prob = make_problem(200, 4, pixel_sigma=0.3)
+    rng = np.random.default_rng(4)
+    obs = prob.obs
+    mine = np.flatnonzero(obs.camera == 1)
+    bad = rng.choice(mine, int(0.7 * len(mine)), replace=False)
+    ang = rng.uniform(0, 2 * np.pi, len(bad))
+    uv = obs.uv.copy()
+    uv[bad] += rng.uniform(15, 40, len(bad))[:, None] * np.column_stack([np.cos(ang),
+                                                                         np.sin(ang)])
+    res = calibrate(prob.specs, prob.measured, Observations(obs.camera, obs.point, uv),
+                    PriorSettings('independent'), SolverSettings(pixel_sigma=0.3))
+    est = res.adjustment.cameras
+    assert est['cam2'].status == 'degenerate', (est['cam2'].n_inliers, len(mine))
+    assert 'observations fit' in est['cam2'].message
+    assert est['cam1'].status == 'ok' and est['cam3'].status == 'ok'
+
+
+def test_a_camera_with_fewer_equations_than_parameters_is_degenerate():
+    prob = make_problem(150, 6, pixel_sigma=0.3)
+    obs = prob.obs
+    mine = np.flatnonzero(obs.camera == 2)
+    keep = np.ones(len(obs.camera), bool)
+    keep[mine[6:]] = False           # 6 points: 12 equations for 14 parameters
+    sub = Observations(obs.camera[keep], obs.point[keep], obs.uv[keep])
+    # From the true cameras: the initialisation would refuse 6 points, a solve that kept only
+    # 6 of a camera's points as inliers must not pass them off as a calibration either.
+    res = adjust(prob.cameras, prob.measured, sub, PriorSettings('independent'),
+                 SolverSettings(pixel_sigma=0.3))
+    est = res.cameras['cam3']
+    assert est.status == 'degenerate'
+    assert '12 equations for its 14 parameters' in est.message
+    assert res.cameras['cam1'].status == 'ok'

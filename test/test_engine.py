@@ -89,6 +89,45 @@ def test_a_clearly_worse_result_does_not_replace_a_good_one():
     assert eng.current is good and eng.n_rejected == 1
 
 
+def test_a_degenerate_camera_is_left_out_and_keeps_its_previous_calibration():
+    prob = make_problem(240, 5)
+    samples = _samples(prob)
+    rng = np.random.default_rng(1)
+
+    def scramble(batch):
+        # cam2 sees something else most of the time (15-40 px off, any direction).
+        for s in batch:
+            o = s.observations.get('cam2')
+            if o is not None and rng.random() < 0.7:
+                a = rng.uniform(0, 2 * np.pi)
+                s.observations['cam2'] = Observation(
+                    o.uv + rng.uniform(15, 40) * np.array([np.cos(a), np.sin(a)]), o.ids)
+    scramble(samples[:100])
+    eng = _engine(prob, Clock(), samples[:100], min_samples=10, solve_period_s=0.0,
+                  min_new_samples=1)
+    out = eng.solve()
+    # A first solve: cam1 and cam3 published, cam2 not, and everyone told why.
+    assert out.accepted, out.reason
+    assert set(eng.current.cameras) == {'cam1', 'cam3'}
+    assert 'cam2 not calibrated: only' in out.reason
+    assert 'observations fit' in eng.current.not_calibrated['cam2']
+    # Once cam2's views are good it is calibrated; a later degenerate fit of it keeps that one.
+    for s in samples[100:180]:
+        eng.add_sample(s)
+    assert eng.solve().accepted and set(eng.current.cameras) == {'cam1', 'cam2', 'cam3'}
+    kept = eng.current.cameras['cam2']
+    bad = samples[180:]
+    scramble(bad)
+    scramble(bad)
+    for s in bad:
+        eng.add_sample(s)
+    out = eng.solve()
+    # Over half of cam2's views are now wrong (118 of 240 fit, measured).
+    assert out.accepted and 'cam2 not calibrated: only' in out.reason, out.reason
+    assert eng.current.cameras['cam2'] is kept
+    assert eng.current.cameras['cam1'].n_observations == 240     # the others moved on
+
+
 def test_save_and_resume_restores_samples_and_calibration(tmp_path):
     prob = make_problem(80, 6)
     eng = _engine(prob, Clock(), _samples(prob), min_samples=10)

@@ -24,7 +24,8 @@ def _calibration():
         cov = np.diag(np.arange(1.0, 7.0)) * 1e-6
         cams[name] = CameraCalibration(cam, {'fx': 0.5, 'cx': 0.25}, cov, 0.31, 120, 118)
     return Calibration(cams, 'hybrid', 12.5, 60, 1.25, 1.7e9, 'converged', 'ok',
-                       {'model': 'kinematic', 'pixel_sigma': 0.2})
+                       {'model': 'kinematic', 'pixel_sigma': 0.2},
+                       {'top': 'only 6 of its 18 observations fit (fewer than 50%)'})
 
 
 def test_calibration_round_trip(tmp_path):
@@ -39,6 +40,7 @@ def test_calibration_round_trip(tmp_path):
             np.testing.assert_allclose(a['cameras'][name].pop(key),
                                        b['cameras'][name].pop(key), rtol=0, atol=1e-12)
     assert a == b
+    assert back.not_calibrated == cal.not_calibrated
     for name, c in cal.cameras.items():
         b = back.cameras[name]
         np.testing.assert_allclose(b.camera.rotation, c.camera.rotation, atol=1e-9)

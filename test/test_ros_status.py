@@ -93,3 +93,18 @@ def test_each_camera_says_how_the_light_was_pooled():
     said = 'not_smooth: the light\'s shift is not smooth over the marker\'s places'
     st = diagnostic_statuses(_state(light_pooling={'cam2': said}))
     assert 'light_pooling' not in st[1].values and st[2].values['light_pooling'] == said
+
+
+def test_a_camera_whose_last_fit_was_degenerate_says_so():
+    from armcal_ros.core.camera import Camera
+    from armcal_ros.core.results import Calibration, CameraCalibration
+    cam = Camera('cam1', 640, 480, 800.0, 800.0, 320.0, 240.0)
+    why = 'only 6 of its 18 observations fit (fewer than 50%)'
+    cal = Calibration({'cam1': CameraCalibration(cam, {}, np.eye(6), 0.2, 40, 40)}, 'fixed',
+                      1.0, 40, 0.1, 1.7e9, 'converged', 'ok', {}, {'cam1': why, 'cam2': why})
+    st = diagnostic_statuses(_state(calibration=cal))
+    # cam1 keeps an earlier calibration (published, with a warning); cam2 has none.
+    assert st[1].level == 1 and 'the previous calibration kept' in st[1].message
+    assert st[1].values['last_fit_unusable'] == why and 'fx' in st[1].values
+    assert st[2].level == 1 and st[2].message == f'not calibrated yet: its fit is not a ' \
+        f'calibration ({why})'

@@ -54,6 +54,9 @@ class Calibration:
     status: str
     message: str
     hyperparameters: Dict[str, float] = field(default_factory=dict)
+    #: Cameras the solve had but whose fit is no calibration, and why (a degenerate
+    #: :class:`~armcal_ros.core.adjustment.CameraEstimate`): not in :attr:`cameras`.
+    not_calibrated: Dict[str, str] = field(default_factory=dict)
 
     def summary(self):
         """Return a JSON-friendly dict (no numpy types)."""
@@ -73,7 +76,8 @@ class Calibration:
         return dict(model=self.model, cost=float(self.cost), n_samples=int(self.n_samples),
                     solve_time_s=float(self.solve_time_s), solved_at=float(self.solved_at),
                     status=self.status, message=self.message,
-                    hyperparameters=dict(self.hyperparameters), cameras=cams)
+                    hyperparameters=dict(self.hyperparameters), cameras=cams,
+                    not_calibrated=dict(self.not_calibrated))
 
 
 def _json_float(x):
@@ -83,18 +87,26 @@ def _json_float(x):
 
 
 def calibration_from_result(result: CalibrationResult, n_samples, hyper=None) -> Calibration:
-    """Turn a solver result into a :class:`Calibration` (pose covariances included)."""
+    """
+    Turn a solver result into a :class:`Calibration` (pose covariances included).
+
+    A camera whose estimate is not 'ok' (a degenerate fit) is left out, named with its reason
+    in :attr:`Calibration.not_calibrated`, and out of the 3-D error figures.
+    """
     adj = result.adjustment
     cams = {}
     names = adj.parameter_names
     hyper = dict(hyper or {})
+    good = {name: est for name, est in adj.cameras.items() if est.status == 'ok'}
+    skipped = {name: est.message or est.status for name, est in adj.cameras.items()
+               if name not in good}
     own, total = {}, float('nan')
-    if adj.points is not None and len(adj.points):
-        cov, own, _ = triangulation_covariance(adj.camera_list(), adj.covariance, names,
-                                               adj.points)
+    if adj.points is not None and len(adj.points) and good:
+        cov, own, _ = triangulation_covariance([e.camera for e in good.values()], adj.covariance,
+                                               names, adj.points)
         total = rms_error_mm(cov)
     hyper['triangulation_error_mm'] = _json_float(total)
-    for name, est in adj.cameras.items():
+    for name, est in good.items():
         idx = [names.index(f'{name}/{p}') for p in POSE_PARAMETERS]
         cov = adj.covariance[np.ix_(idx, idx)]
         cams[name] = CameraCalibration(est.camera.copy(), dict(est.std),
@@ -103,4 +115,4 @@ def calibration_from_result(result: CalibrationResult, n_samples, hyper=None) ->
                                        est.sigma_px,
                                        rms_error_mm(own[name]) if name in own else float('nan'))
     return Calibration(cams, adj.model, adj.cost, n_samples, result.time_s, time.time(),
-                       result.status, result.message, hyper)
+                       result.status, result.message, hyper, skipped)

@@ -117,4 +117,6 @@ def rms_error_mm(cov):
     """Root mean square 3-D error (mm) of points with covariances ``cov`` (n, 3, 3)."""
     tr = np.trace(np.asarray(cov), axis1=1, axis2=2)
     tr = tr[np.isfinite(tr)]
-    return float(1e3 * np.sqrt(np.mean(tr))) if tr.size else float('nan')
+    # A negative mean trace is a covariance that is not one (a pseudo-inverse of a singular
+    # normal matrix): no figure rather than the root of a negative number.
+    return float(1e3 * np.sqrt(np.mean(tr))) if tr.size and np.mean(tr) >= 0 else float('nan')

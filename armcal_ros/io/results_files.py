@@ -64,7 +64,7 @@ def load_calibration(directory) -> Calibration:
             _nan_if_none(d.get('workspace_error_mm')))
     return Calibration(out, doc['model'], doc['cost'], doc['n_samples'], doc['solve_time_s'],
                        doc['solved_at'], doc['status'], doc['message'],
-                       doc.get('hyperparameters', {}))
+                       doc.get('hyperparameters', {}), dict(doc.get('not_calibrated') or {}))
 
 
 def target_yaml(T, std, link, estimated, scale=1.0):

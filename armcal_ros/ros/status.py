@@ -190,8 +190,12 @@ def camera_status(name, s: NodeState, node_name='armcal') -> Status:
                 else f'{name} changed')
         return Status(WARN, f'{node_name}: {name}', said + '; its calibration is withheld',
                       name, {k: _fmt(v) for k, v in values.items()})
+    why = s.calibration.not_calibrated.get(name) if s.calibration is not None else None
+    if why:
+        values['last_fit_unusable'] = why
     if c is None:
-        return Status(WARN, f'{node_name}: {name}', 'not calibrated yet', name,
+        return Status(WARN, f'{node_name}: {name}', 'not calibrated yet' +
+                      (f': its fit is not a calibration ({why})' if why else ''), name,
                       {k: _fmt(v) for k, v in values.items()})
     cam = c.camera
     values.update(fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy,
@@ -202,12 +206,14 @@ def camera_status(name, s: NodeState, node_name='armcal') -> Status:
         values[k] = float(cam.dist[i])
     for k, v in sorted(c.std.items()):
         values[f'std_{k}'] = float(v)
-    return Status(OK, f'{node_name}: {name}',
+    return Status(WARN if why else OK, f'{node_name}: {name}',
                   f'reprojection RMS {c.rms_px:.3f} px over {c.n_inliers} of '
                   f'{c.n_observations} observations'
                   + (f'; expected 3-D error it adds over the workspace '
                      f'{c.workspace_error_mm:.2f} mm' if np.isfinite(c.workspace_error_mm)
-                     else ''), name,
+                     else '')
+                  + (f'; the previous calibration kept: the last solve\'s fit is not one '
+                     f'({why})' if why else ''), name,
                   {k: _fmt(v) for k, v in values.items()})
 
 
