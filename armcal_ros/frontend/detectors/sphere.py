@@ -148,6 +148,13 @@ class SphereDetector(Detector):
     #: size alone; a start 1.5 x the moments' size, raced beside it, gave 3 but made the demo
     #: bag's front end 1.6 x as dear.
     RADIUS_HINT_FITS = 9
+    #: ... but no larger than this many times the blob's own (moments) radius: a hint from
+    #: fits taken on something else (a bright patch of a textured scene before the scene is
+    #: learnt: fitted radii of 29-63 px where the ball has 2.7, measured on the simulator's
+    #: lamp-lit textured PUMA cell) would otherwise size every later patch and start, each fit
+    #: free to double the last, and one frame cost 6 s.  Three times covers what a lit part
+    #: under-states (1.5 x the moments' size was enough above).
+    RADIUS_HINT_MAX_RATIO = 3.0
     #: A cold fit prefers, of minima that fit nearly alike, the one lit from where the camera's
     #: last ``LIGHT_PRIOR_FITS`` fits were (a von Mises-Fisher prior fitted to their
     #: directions, :func:`.fit_shaded_sphere` ``light_prior``), once it has at least
@@ -502,6 +509,7 @@ class SphereDetector(Detector):
         """
         centroid = cand.uv + (x0, y0)
         hint = _median(np.array(self._radii)) if len(self._radii) >= 3 else 0.0
+        hint = min(hint, self.RADIUS_HINT_MAX_RATIO * cand.radius)
         half = int(math.ceil(max(cand.radius, hint) + 3.0))
         cu, cv = int(round(cand.uv[0])), int(round(cand.uv[1]))
         if cu - half < 0 or cv - half < 0 or cu + half >= sub.shape[1] or \
@@ -554,7 +562,9 @@ class SphereDetector(Detector):
                                       light_prior=self._light_prior())
             if again.ok:
                 fit = again
-        if not fit.ok or np.hypot(*(fit.uv - centroid)) > reach:
+        if not fit.ok or np.hypot(*(fit.uv - centroid)) > reach or \
+                fit.radius > self.max_radius_px:
+            # (A ball larger than the largest the detector is told of is something else.)
             self._fit_start = None
             return None
         self._radii.append(fit.radius)
