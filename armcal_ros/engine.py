@@ -588,7 +588,8 @@ class CalibrationEngine:
                 return arrays.points, kin, m0, initial, 'place: the guess (fixed stage failed)'
             known = first.T_link_target[:3, 3]
             initial = {**(initial or {}),
-                       **{k: c.camera for k, c in adj.cameras.items() if c.camera is not None}}
+                       **{k: c.camera for k, c in adj.cameras.items()
+                          if c.camera is not None and c.status == 'ok'}}
             note = (f'place: fixed stage moved the guess by '
                     f'{1e3 * np.linalg.norm(known - m0):.1f} mm')
         points = arrays.points + R @ (known - m0)
@@ -818,6 +819,8 @@ class CalibrationEngine:
         if adj is not None and adj.covariance is not None:
             names = list(adj.parameter_names)
             for cam in cal.cameras:
+                if cam in cal.not_calibrated:
+                    continue    # kept from an earlier solve: this adjustment's block is not its
                 idx = [i for i, p in enumerate(names) if p.startswith(cam + '/')]
                 if idx and np.all(np.isfinite(adj.covariance[np.ix_(idx, idx)])):
                     blocks[cam] = ([names[i][len(cam) + 1:] for i in idx],
