@@ -99,3 +99,20 @@ def test_images_of_another_size_are_refused_for_the_given_values(prob):
     assert 'images are 640x480 but the given intrinsics are for 1280x720' in \
         res.init[c0.name].message
     assert sorted(res.cameras) == sorted(c.name for c in prob.cameras[1:])
+
+
+def test_a_camera_with_given_intrinsics_needs_equations_for_its_pose_only(prob):
+    # 5 points: 10 equations, too few for 14 free parameters, enough for a pose of 6.
+    from armcal_ros.core.adjustment import adjust, Observations
+    obs = prob.obs
+    keep = np.ones(len(obs.camera), bool)
+    keep[np.flatnonzero(obs.camera == 2)[5:]] = False
+    sub = Observations(obs.camera[keep], obs.point[keep], obs.uv[keep])
+    cam3 = prob.cameras[2]
+    free = adjust(prob.cameras, prob.measured, sub, PriorSettings('fixed'),
+                  SolverSettings(pixel_sigma=0.3))
+    given = adjust(prob.cameras, prob.measured, sub, PriorSettings('fixed'),
+                   SolverSettings(pixel_sigma=0.3,
+                                  intrinsics={cam3.name: IntrinsicsPrior.from_camera(cam3)}))
+    assert free.cameras[cam3.name].status == 'degenerate'
+    assert given.cameras[cam3.name].status == 'ok', given.cameras[cam3.name].message

@@ -1055,9 +1055,10 @@ def _camera_sanity(c, n_observations, n_inliers, n_parameters):
     Return ('ok', '') or ('degenerate', why) for a camera's fit that is no calibration.
 
     Degenerate: focal lengths that are not positive; fewer inlier equations (2 per point)
-    than the camera has parameters, so that its fit is not determined by them (its residuals
-    near zero, its covariance meaningless); or fewer than :data:`MIN_INLIER_FRACTION` of its
-    observations kept.
+    than the ``n_parameters`` the images alone must determine (all of the camera's, or its
+    pose's 6 where its intrinsics are given), so that its fit is not determined by them (its
+    residuals near zero, its covariance meaningless); or fewer than
+    :data:`MIN_INLIER_FRACTION` of its observations kept.
     """
     if not (np.isfinite(c.fx) and np.isfinite(c.fy) and c.fx > 0 and c.fy > 0):
         return 'degenerate', f'focal lengths fx {c.fx:.4g}, fy {c.fy:.4g} px are not positive'
@@ -1083,7 +1084,10 @@ def _camera_estimates(cams, obs, X, active, cov, layout, leverage=None, settings
         std = _camera_std(c, cov[j * pc:(j + 1) * pc, j * pc:(j + 1) * pc], layout)
         rms = float(np.sqrt(np.mean(d[inl] ** 2))) if inl.any() else float('nan')
         est = CameraEstimate(c, std, int(sel.sum()), int(inl.sum()), rms)
-        est.status, est.message = _camera_sanity(c, est.n_observations, est.n_inliers, pc)
+        # Given intrinsics (a prior term, fixed or not) determine all but the pose.
+        given = settings is not None and c.name in settings.intrinsics
+        est.status, est.message = _camera_sanity(c, est.n_observations, est.n_inliers,
+                                                 6 if given else pc)
         if leverage is not None and inl.any():
             # The mean over the computed leverages (all, or an even subsample) times the count.
             est.redundancy = float(inl.sum() * (2.0 - np.nanmean(leverage[inl])))
