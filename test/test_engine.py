@@ -111,10 +111,13 @@ def test_a_degenerate_camera_is_left_out_and_keeps_its_previous_calibration():
     assert set(eng.current.cameras) == {'cam1', 'cam3'}
     assert 'cam2 not calibrated: only' in out.reason
     assert 'observations fit' in eng.current.not_calibrated['cam2']
+    # ... and nothing is tested against it: the change monitor waits for a full solve.
+    assert eng.changes.enabled and eng.changes.monitor is None
     # Once cam2's views are good it is calibrated; a later degenerate fit of it keeps that one.
     for s in samples[100:180]:
         eng.add_sample(s)
     assert eng.solve().accepted and set(eng.current.cameras) == {'cam1', 'cam2', 'cam3'}
+    assert eng.changes.monitor is not None
     kept = eng.current.cameras['cam2']
     bad = samples[180:]
     scramble(bad)
