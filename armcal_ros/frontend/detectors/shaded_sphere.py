@@ -247,10 +247,7 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
         starts = COLD_STARTS + ((tuple(light_prior[0]),) if prior else ())
         runs = [_levenberg_marquardt(model, np.r_[geometry, 0.4 * top, 0.6 * top * np.asarray(
             light), occlusion], radius0, top, 1e-3, race, tolerance) for light in starts]
-        if prior:
-            runs.sort(key=_posterior_score(min(r[1] for r in runs), model.y.size, light_prior))
-        else:
-            runs.sort(key=lambda r: r[1])
+        runs.sort(key=_score(runs, model.y.size, light_prior if prior else None))
         finals = []
         for theta, cost, it, converged, lam in runs[:COLD_FINALISTS]:
             if not converged and it < max_iterations:
@@ -258,11 +255,7 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
                     model, theta, radius0, top, lam, max_iterations - it, tolerance)
                 it += more
             finals.append((theta, cost, it, converged, lam))
-        if prior:
-            least = min(r[1] for r in finals)
-            best = min(finals, key=_posterior_score(least, model.y.size, light_prior))
-        else:
-            best = min(finals, key=lambda r: r[1])
+        best = min(finals, key=_score(finals, model.y.size, light_prior if prior else None))
     theta, cost, it, converged, _ = best
     g, coef = theta[:4], theta[4:]
     rms = math.sqrt(cost / model.y.size)
@@ -279,12 +272,19 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
                      iterations=it, status=status, message=message)
 
 
-def _posterior_score(least, pixels, light_prior):
-    """Return the key cost / (2 s^2) - kappa d . l of a run (:func:`fit_shaded_sphere`)."""
+def _score(runs, pixels, light_prior):
+    """
+    Return the key that ranks ``runs`` (:func:`fit_shaded_sphere`).
+
+    Without a ``light_prior`` their cost; with one cost / (2 s^2) - kappa d . l, s^2 from the
+    least cost of ``runs``.
+    """
+    if light_prior is None:
+        return lambda run: run[1]
     direction, kappa = light_prior
     direction = np.asarray(direction, float).reshape(3)
     kappa = min(float(kappa), LIGHT_KAPPA_MAX)
-    s2 = max(least, 1e-12) / max(pixels - 10, 1)
+    s2 = max(min(r[1] for r in runs), 1e-12) / max(pixels - 10, 1)
 
     def score(run):
         light = run[0][6:9]
