@@ -72,6 +72,9 @@ def test_two_calibrators_share_a_cell_and_a_recording(ros_env, client, tmp_path)
         replay.p.wait(timeout=DURATION / RATE + 60.0)
         assert replay.p.returncode == 0, replay.log()
         t_cal = time.monotonic()
+
+        def logs():
+            return '\n'.join(p.log()[-4000:] for p in procs)
         for name in GROUPS:
             def calibrate():
                 # A background solve may be running (the worker adds a late sample on a loaded
@@ -84,9 +87,9 @@ def test_two_calibrators_share_a_cell_and_a_recording(ros_env, client, tmp_path)
             res = wait_until(calibrate, 240, f'a ~/calibrate call of {name} not refused as busy')
             assert res.success, (name, res.message)
         for key, got in info.items():
-            wait_until(lambda: got and got[-1][0] >= t_cal, 120, f'CameraInfo of {key}')
+            wait_until(lambda: got and got[-1][0] >= t_cal, 120, f'CameraInfo of {key}', logs)
         for key, got in pose.items():
-            wait_until(lambda: got and got[-1][0] >= t_cal, 30, f'pose of {key}')
+            wait_until(lambda: got and got[-1][0] >= t_cal, 30, f'pose of {key}', logs)
     finally:
         for p in procs:
             p.stop()

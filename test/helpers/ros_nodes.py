@@ -73,15 +73,20 @@ def isolated_ros_env(tmp_path_factory, module_name):
             os.environ[k] = v
 
 
-def wait_until(pred, timeout, what):
-    """Poll ``pred`` until true; fail naming ``what`` after ``timeout`` seconds."""
+def wait_until(pred, timeout, what, context=None):
+    """
+    Poll ``pred`` until true; fail naming ``what`` after ``timeout`` seconds.
+
+    ``context()``, when given, adds what explains a time-out to the failure (e.g. a node's log).
+    """
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         value = pred()
         if value:
             return value
         time.sleep(0.05)
-    raise AssertionError(f'timed out after {timeout} s waiting for {what}')
+    extra = '' if context is None else '\n' + str(context())
+    raise AssertionError(f'timed out after {timeout} s waiting for {what}{extra}')
 
 
 class Proc:
