@@ -87,10 +87,12 @@ class SphereDetector(Detector):
     evenly lit ball and ~1-2 ms per frame (the front end detects only still frames: a
     motion-blurred ball is not the model).  Each fit starts from the previous frame's when the
     ball has not moved (a dwell's frames converge in two or three iterations), from six light
-    directions otherwise - and, once the camera has a few fits, from where its recent fits
-    were lit, which also decides between minima that fit nearly alike (a lamp fixed in the
-    cell lights the ball from nearly the same side at every place; :func:`.fit_shaded_sphere`
-    ``light_prior``).  A fit that fails gives no detection
+    directions otherwise, and from the camera's last fit moved to the new blob - and, once the
+    camera has a few fits, from where its recent fits were lit, which also decides between
+    minima that fit nearly alike (a lamp fixed in the cell lights the ball from nearly the
+    same side at every place, and the ball's image has nearly the same size;
+    :func:`.fit_shaded_sphere` ``light_prior``, ``radius_prior`` and ``look``).  A fit that
+    fails gives no detection
     (``last_status = 'shaded_fit_failed'``): a centroid in its place would carry the bias.
 
     Static scene (``static_scene``, on by default): a camera exposed for the cell rather than
