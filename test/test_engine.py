@@ -128,6 +128,9 @@ def test_a_degenerate_camera_is_left_out_and_keeps_its_previous_calibration():
     # Over half of cam2's views are now wrong (118 of 240 fit, measured).
     assert out.accepted and 'cam2 not calibrated: only' in out.reason, out.reason
     assert eng.current.cameras['cam2'] is kept
+    # report.json (the summary) says the camera is an earlier solve's, and why.
+    assert 'observations fit' in eng.current.summary()['cameras']['cam2']['last_fit_unusable']
+    assert 'last_fit_unusable' not in eng.current.summary()['cameras']['cam1']
     assert eng.current.cameras['cam1'].n_observations == 240     # the others moved on
 
 

@@ -55,7 +55,8 @@ class Calibration:
     message: str
     hyperparameters: Dict[str, float] = field(default_factory=dict)
     #: Cameras the solve had but whose fit is no calibration, and why (a degenerate
-    #: :class:`~armcal_ros.core.adjustment.CameraEstimate`): not in :attr:`cameras`.
+    #: :class:`~armcal_ros.core.adjustment.CameraEstimate`): in :attr:`cameras` only with an
+    #: earlier solve's calibration, kept.
     not_calibrated: Dict[str, str] = field(default_factory=dict)
 
     def summary(self):
@@ -73,6 +74,9 @@ class Calibration:
                 n_inliers=int(c.n_inliers), redundancy=_json_float(c.redundancy),
                 sigma_px=_json_float(c.sigma_px),
                 workspace_error_mm=_json_float(c.workspace_error_mm))
+            if name in self.not_calibrated:
+                # Kept from an earlier solve: this solve's fit of it was no calibration.
+                cams[name]['last_fit_unusable'] = self.not_calibrated[name]
         return dict(model=self.model, cost=float(self.cost), n_samples=int(self.n_samples),
                     solve_time_s=float(self.solve_time_s), solved_at=float(self.solved_at),
                     status=self.status, message=self.message,
