@@ -28,7 +28,7 @@ from typing import Callable, Dict, Iterator, List, Optional
 import numpy as np
 
 from armcal_ros.change_tracking import ChangeTracker
-from armcal_ros.compose import build_engine, build_pipeline, latency_detectors
+from armcal_ros.compose import build_engine, build_pipeline, build_store, latency_detectors
 from armcal_ros.core.target import pose_vector
 from armcal_ros.engine import SolveOutcome
 from armcal_ros.frontend.collector import SampleCollector, why_few_samples
@@ -442,14 +442,33 @@ def calibrate_bag(source, settings: Settings, output_dir,
     """
     with _output_directory(output_dir) as out:
         front = collect_samples(source, settings, progress, log)
-        engine, outcome, report = _solve(front, settings)
-        if latency and not is_rct_folder(source):
+        latency = latency and not is_rct_folder(source)
+        try:
+            engine, outcome, report = _solve(front, settings)
+            probe = (front, engine, outcome)
+        except CalibrateError as exc:
+            if not (latency and front.store.retired):
+                raise
+            # The frames were paired at their stamps, which may be late: the changes followed
+            # may be the stamps' (an arm in motion seen where it was some tens of ms before),
+            # and what they left is too little to solve.  The latency is then measured on a
+            # calibration of every sample, changes not followed, and the frames paired again;
+            # a change that is real is found again in that pass.
+            failed = exc
+            if log:
+                log(f'{exc}; the changes found may come from late stamps: measuring the stamp '
+                    f'latency on every sample, changes not followed')
+            everything = _with_retired(front, settings)
+            probe = (everything,) + _solve(everything, settings)[:2]
+            engine = outcome = report = None
+        if latency:
             t0 = time.perf_counter()
-            estimates = _measure_latency(open_bag(source, settings), front, engine, outcome,
-                                         settings)
+            estimates = _measure_latency(open_bag(source, settings), *probe, settings)
             seconds = time.perf_counter() - t0
-            if estimates:
-                apply = _latencies_to_apply(estimates, settings)
+            if estimates or outcome is None:
+                apply = _latencies_to_apply(estimates or {}, settings)
+                if not apply and outcome is None:
+                    raise failed
                 if apply:
                     # Pair every frame again at its exposure time, and solve again.
                     if log:
@@ -466,6 +485,20 @@ def calibrate_bag(source, settings: Settings, output_dir,
                 report['stamp_latency'] = latency_report(estimates, apply or None)
                 report['timings']['latency_s'] = seconds
         return _write(engine, outcome, report, front, out)
+
+
+def _with_retired(front: FrontEnd, settings: Settings) -> FrontEnd:
+    """
+    Return ``front`` with the observations its changes retired put back, changes not followed.
+
+    Each retired observation goes back as a sample of its own place (a new store, in the order
+    the samples were made): for a calibration that only has to time the stamps.
+    """
+    store = build_store(settings, front.chain)
+    samples = [s for _, s in front.store.retired] + list(front.store)
+    for s in sorted(samples, key=lambda s: (s.id, s.stamp_ns)):
+        store.add(replace(s, observations=dict(s.observations), id=-1))
+    return replace(front, store=store, changes=None)
 
 
 def make_report(settings: Settings, engine, outcome, front: FrontEnd, timings):

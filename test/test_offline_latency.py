@@ -16,10 +16,16 @@ from helpers.cli import armcal
 pytestmark = pytest.mark.slow
 
 
-def test_late_stamps_are_measured_per_camera(tmp_path):
-    bag, out = tmp_path / 'bag', tmp_path / 'out'
+@pytest.fixture(scope='module')
+def late_bag(tmp_path_factory):
+    bag = tmp_path_factory.mktemp('late') / 'bag'
     armcal('simulate', '--output', bag, '--duration', 60, '--stamp-latency', 'cam1:0.03',
            '--stamp-latency', 'cam2:0.07', '--no-zstd', '--quiet')
+    return bag
+
+
+def test_late_stamps_are_measured_per_camera(late_bag, tmp_path):
+    bag, out = late_bag, tmp_path / 'out'
     armcal('calibrate', bag, '--params', bag / 'ground_truth' / 'params.yaml', '--output', out,
            '--quiet')
     report = json.loads((out / 'report.json').read_text())
@@ -35,3 +41,36 @@ def test_late_stamps_are_measured_per_camera(tmp_path):
         # (on time, within 2 ms) as stamped.
         assert got['applied_ms'] == pytest.approx(got['latency_ms'] if expected_ms > 10 else 0,
                                                   abs=1e-6), got
+
+
+def test_a_change_the_late_stamps_made_does_not_end_the_job(late_bag, tmp_path, monkeypatch):
+    """
+    The first pass pairs frames at their (late) stamps; a change it declares can be theirs.
+
+    Here the first pass's change following is made to retire all but the last 5 samples' views,
+    as a false arm change late in the recording did on a lamp-lit UR5 cell (11 samples left,
+    min_samples 20: the job ended).  The latency is then measured on every sample, changes not
+    followed, and the second pass - frames paired at their exposure - calibrates as usual.
+    """
+    from armcal_ros import offline
+    from armcal_ros.settings import load_settings
+    collect = offline.collect_samples
+    calls = []
+
+    def first_pass_retires(source, settings, *args, **kwargs):
+        front = collect(source, settings, *args, **kwargs)
+        if not calls:
+            stamps = sorted(s.stamp_ns for s in front.store)
+            front.store.retire(stamps[-5], epoch=1)
+        calls.append(len(front.store))
+        return front
+    monkeypatch.setattr(offline, 'collect_samples', first_pass_retires)
+    logged = []
+    settings = load_settings(str(late_bag / 'ground_truth' / 'params.yaml'))
+    result = offline.calibrate_bag(str(late_bag), settings, str(tmp_path / 'out'),
+                                   log=logged.append)
+    assert len(calls) == 2 and calls[0] < settings.schedule.min_samples <= calls[1], calls
+    assert result.outcome.accepted and len(result.outcome.calibration.cameras) == 3
+    assert any('changes not followed' in m for m in logged), logged
+    report = json.loads((tmp_path / 'out' / 'report.json').read_text())
+    assert report['stamp_latency']['cam2']['applied_ms'] == pytest.approx(70.0, abs=5.0)
