@@ -207,8 +207,9 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
     ``sigma0`` the start.  ``shading0`` (p0..p3) is a warm start (the previous frame's); without
     it the :data:`COLD_STARTS` race and the best finish (:data:`COLD_RACE_ITERATIONS`,
     :data:`COLD_FINALISTS`).  The
-    radius is bounded to [radius0 / 2, 2 radius0].  Converged when a step moves the centre
-    and radius by less than ``tolerance`` px.
+    radius is bounded to [radius0 / 2, 2 radius0]; a fit that ends at the upper bound
+    (:data:`RADIUS_PINNED`) goes on once from there with the bounds doubled.  Converged when a
+    step moves the centre and radius by less than ``tolerance`` px.
 
     ``scene`` (h, w), the static scene behind the ball where it is known (the detector's
     median of earlier frames), makes ``patch`` the frame minus that scene - unclipped - and

@@ -571,7 +571,7 @@ class SphereDetector(Detector):
             # radii, and a start from them then fails on every later ball, so none of its fits
             # enters them again - the camera fell silent for good after a 0.25 deg knock of
             # the lamp-lit cluttered cell.  From the blob's own size the ball is found again.
-            # (Nor is it a prior here.)
+            # (Nor is the recent size a prior here.)
             again = fit_shaded_sphere(patch, u0, v0, at, own, sigma0, scene=behind,
                                       light_prior=self._light_prior())
             if again.ok:
