@@ -815,8 +815,15 @@ class CalibrationEngine:
             arm = (predictor.sigma if predictor is not None
                    else self._unpredicted_arm_sigma(adj, points, kin))
         cal.hyperparameters['arm_sigma_mm'] = 1e3 * arm
+        # A solve that left a camera out (its fit degenerate: core.results.calibration_from_result)
+        # is published but not tested against: the others were solved beside a camera bent to
+        # a few of its views, and a kept camera's old fit is not this adjustment's.  Measured on
+        # a textured UR5 recording: the first solve (20 samples) kept one camera of two, and
+        # the monitor built from it declared that camera moved at the next part of the
+        # workspace (0.6 deg / 58 mm, withheld to the end).  The current monitor stays.
+        partial = bool(cal.not_calibrated)
         blocks, joint, rows = {}, None, []
-        if adj is not None and adj.covariance is not None:
+        if not partial and adj is not None and adj.covariance is not None:
             names = list(adj.parameter_names)
             for cam in cal.cameras:
                 idx = [i for i, p in enumerate(names) if p.startswith(cam + '/')]
@@ -839,16 +846,8 @@ class CalibrationEngine:
         with self._lock:
             jobs = self.changes.accepted(cal)
         sized = self.changes.size(jobs, arrays, joints)
-        # A solve that left a camera out (its fit degenerate: core.results.calibration_from_result)
-        # is published but not tested against: the others were solved beside a camera bent to
-        # a few of its views, and a kept camera's old fit is not this adjustment's.  Measured on
-        # a textured UR5 recording: the first solve (20 samples) kept one camera of two, and
-        # the monitor built from it declared that camera moved at the next part of the
-        # workspace (0.6 deg / 58 mm, withheld to the end).  The current monitor stays.
-        partial = bool(cal.not_calibrated)
-        monitor = None
-        if not partial:
-            monitor = self.changes.build_monitor(cal, arrays, arm, blocks, joint, predictor)
+        monitor = None if partial else self.changes.build_monitor(cal, arrays, arm, blocks,
+                                                                  joint, predictor)
         with self._lock:
             self.changes.apply_sizes(sized)
             self.changes.light_shifts = dict(self.light_pooling)

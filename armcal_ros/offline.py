@@ -459,29 +459,32 @@ def calibrate_bag(source, settings: Settings, output_dir,
                 log(f'{exc}; the changes found may come from late stamps: measuring the stamp '
                     f'latency on every sample, changes not followed')
             everything = _with_retired(front, settings)
-            probe = (everything,) + _solve(everything, settings)[:2]
+            try:
+                probe = (everything,) + _solve(everything, settings)[:2]
+            except CalibrateError:
+                raise failed from None      # the first pass's own reason says more
             engine = outcome = report = None
         if latency:
             t0 = time.perf_counter()
             estimates = _measure_latency(open_bag(source, settings), *probe, settings)
             seconds = time.perf_counter() - t0
-            if estimates or outcome is None:
-                apply = _latencies_to_apply(estimates or {}, settings)
-                if not apply and outcome is None:
-                    raise failed
-                if apply:
-                    # Pair every frame again at its exposure time, and solve again.
-                    if log:
-                        log('stamp latency measured (' + ', '.join(
-                            f'{c} {1e3 * v:.1f} ms' for c, v in apply.items()) +
-                            '): pairing the frames again with it')
-                    settings = replace(settings, front_end=replace(
-                        settings.front_end, image_stamp_latency=tuple(apply.items())))
-                    first_s = front.time_s
-                    front = collect_samples(source, settings, None, log)
-                    engine, outcome, report = _solve(front, settings)
-                    report['timings']['front_end_s'] += first_s
-                    report['timings']['total_s'] += first_s
+            apply = _latencies_to_apply(estimates, settings) if estimates else {}
+            if outcome is None and not apply:
+                raise failed            # nothing to pair again: the first pass's failure stands
+            if apply:
+                # Pair every frame again at its exposure time, and solve again.
+                if log:
+                    log('stamp latency measured (' + ', '.join(
+                        f'{c} {1e3 * v:.1f} ms' for c, v in apply.items()) +
+                        '): pairing the frames again with it')
+                settings = replace(settings, front_end=replace(
+                    settings.front_end, image_stamp_latency=tuple(apply.items())))
+                first_s = front.time_s
+                front = collect_samples(source, settings, None, log)
+                engine, outcome, report = _solve(front, settings)
+                report['timings']['front_end_s'] += first_s
+                report['timings']['total_s'] += first_s
+            if estimates:
                 report['stamp_latency'] = latency_report(estimates, apply or None)
                 report['timings']['latency_s'] = seconds
         return _write(engine, outcome, report, front, out)

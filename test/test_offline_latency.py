@@ -65,8 +65,14 @@ def test_a_change_the_late_stamps_made_does_not_end_the_job(late_bag, tmp_path, 
         calls.append(len(front.store))
         return front
     monkeypatch.setattr(offline, 'collect_samples', first_pass_retires)
-    logged = []
     settings = load_settings(str(late_bag / 'ground_truth' / 'params.yaml'))
+    # Where the latency then needs no second pass, the first pass's own failure stands.
+    with monkeypatch.context() as m:
+        m.setattr(offline, '_latencies_to_apply', lambda estimates, settings: {})
+        with pytest.raises(offline.CalibrateError, match='only 5 samples'):
+            offline.calibrate_bag(str(late_bag), settings, str(tmp_path / 'refused'))
+    calls.clear()
+    logged = []
     result = offline.calibrate_bag(str(late_bag), settings, str(tmp_path / 'out'),
                                    log=logged.append)
     assert len(calls) == 2 and calls[0] < settings.schedule.min_samples <= calls[1], calls
