@@ -54,13 +54,13 @@ from armcal_ros.core.initialisation import initialise_with_intrinsics
 from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
 from armcal_ros.core.image_noise import pooled_pixel_sigma
 from armcal_ros.core.kinematic_prior import KinematicData, tip_place
-from armcal_ros.core.light_pooling import pool_light_shift
+from armcal_ros.core.light_pooling import compare_centres, pool_light_shift, PooledShift
 from armcal_ros.core.marker_light import image_offsets
 from armcal_ros.core.priors import KINEMATIC_MODELS, PointPrior, PriorSettings
 from armcal_ros.core.results import Calibration, calibration_from_result
 from armcal_ros.core.target import invert, pose_vector
 from armcal_ros.frontend.samples import BoardTarget
-from armcal_ros.frontend.store import SampleStore
+from armcal_ros.frontend.store import SampleStore, SolverArrays
 from armcal_ros.io.calib_files import read_extrinsics
 from armcal_ros.io.results_files import (CALIBRATION_FILE, load_calibration,
                                          read_target_scale, read_target_yaml, TARGET_FILE,
@@ -159,21 +159,42 @@ class EngineSettings:
         return self
 
 
-def pooled_light_arrays(arrays):
+@dataclass
+class LitCentres:
     """
-    Return (arrays, {camera: PooledShift}): observations with centroids moved to the pooled centre.
+    Observations with each camera's chosen kind of centre (:func:`lit_centres`).
+
+    ``arrays`` the samples' arrays with the chosen centres and spreads, ``pooling`` camera ->
+    its pooled light shift (status 'ok' where the pooled centres are used, 'fits_kept' where
+    they could be but the fitted ones are), ``other_uv`` and ``other_spread`` (M, ...) per
+    observation the kind not chosen (NaN where a camera has only one kind).
+    """
+
+    arrays: SolverArrays
+    pooling: Dict[str, PooledShift]
+    other_uv: np.ndarray
+    other_spread: np.ndarray
+
+
+def lit_centres(arrays, fitted=frozenset()) -> LitCentres:
+    """
+    Return each camera's lit-ball centres: pooled where the shift pools, but for ``fitted``.
 
     Per camera, the observations with an intensity centroid beside their fitted centre get
     ``uv = centroid + pooled shift`` (:func:`~armcal_ros.core.light_pooling.pool_light_shift`,
     over the nominal points) and a spread that carries the centroid's scatter plus the
     smooth's variance, so that :func:`~armcal_ros.core.image_noise.pooled_pixel_sigma` sees
     the noise of the new centres: a frame variance s^2 + n v per axis, i.e.
-    spread^2 = c^2 + 2 (n - 1) v for the centroid's spread c over n frames.
+    spread^2 = c^2 + 2 (n - 1) v for the centroid's spread c over n frames.  The cameras named
+    in ``fitted`` keep their fitted centres (the engine's choice by a calibration's
+    residuals, :func:`~armcal_ros.core.light_pooling.compare_centres`).
     """
+    nan = np.full(arrays.uv.shape, np.nan)
     has = np.all(np.isfinite(arrays.centroid_uv), axis=1)
     if not np.any(has):
-        return arrays, {}
+        return LitCentres(arrays, {}, nan, nan[:, 0].copy())
     uv, spread = arrays.uv.copy(), arrays.spread_px.copy()
+    other_uv, other_spread = nan.copy(), nan[:, 0].copy()
     info = {}
     for c, name in enumerate(arrays.camera_names):
         sel = np.flatnonzero(has & (arrays.camera_index == c))
@@ -190,10 +211,28 @@ def pooled_light_arrays(arrays):
         info[name] = pooled
         if pooled.status != 'ok':
             continue
-        uv[sel] = arrays.centroid_uv[sel] + pooled.shift
-        spread[sel] = np.sqrt(arrays.centroid_spread_px[sel] ** 2 +
-                              2.0 * np.maximum(n - 1, 0) * pooled.variance)
-    return replace(arrays, uv=uv, spread_px=spread), info
+        p_uv = arrays.centroid_uv[sel] + pooled.shift
+        p_spread = np.sqrt(arrays.centroid_spread_px[sel] ** 2 +
+                           2.0 * np.maximum(n - 1, 0) * pooled.variance)
+        if name in fitted:
+            other_uv[sel], other_spread[sel] = p_uv, p_spread
+            info[name] = replace(pooled, status='fits_kept', message=(
+                f'{pooled.message}; the fitted centres are used: a calibration fits them '
+                'better'))
+        else:
+            other_uv[sel], other_spread[sel] = uv[sel], spread[sel]
+            uv[sel], spread[sel] = p_uv, p_spread
+    return LitCentres(replace(arrays, uv=uv, spread_px=spread), info, other_uv, other_spread)
+
+
+def pooled_light_arrays(arrays):
+    """
+    Return (arrays, {camera: PooledShift}): observations with centroids moved to the pooled centre.
+
+    Every camera whose shift pools gets its pooled centres (:func:`lit_centres`).
+    """
+    lit = lit_centres(arrays)
+    return lit.arrays, lit.pooling
 
 
 #: The image-noise rise test's false-refusal rate: a rise that two estimates of the same noise
@@ -369,6 +408,9 @@ class CalibrationEngine:
         self._views_counted_at = -1
         #: Camera -> its pooled light shift at the last solve (``pool_light_shift``).
         self.light_pooling = {}
+        #: Cameras whose fitted lit-ball centres are used though their shift pools: a
+        #: calibration fitted them clearly better (:meth:`_centre_switches`).
+        self._fitted_centres = set()
 
     @property
     def target_estimated(self) -> Optional[bool]:
@@ -613,15 +655,17 @@ class CalibrationEngine:
     def _problem(self):
         names = list(self.settings.camera_names)
         arrays = self.store.arrays(camera_names=names)
+        lit = None
         if self.settings.pool_light_shift:
-            arrays, self.light_pooling = pooled_light_arrays(arrays)
+            lit = lit_centres(arrays, self._fitted_centres)
+            arrays, self.light_pooling = lit.arrays, lit.pooling
         specs, missing = [], []
         for name in names:
             if name not in self.image_sizes:
                 missing.append(name)
             w, h = self.image_sizes.get(name, (0, 0))
             specs.append(CameraSpec(name, w, h))
-        return arrays, specs, missing
+        return arrays, specs, missing, lit
 
     def problem_inputs(self) -> Optional[ProblemInputs]:
         """
@@ -633,7 +677,7 @@ class CalibrationEngine:
         study the adjustment on these data (bench/hyperparameters.py).
         """
         with self._lock:
-            arrays, specs, missing = self._problem()
+            arrays, specs, missing, _ = self._problem()
             kin = self._kinematics(arrays)
         keep = [j for j, s in enumerate(specs) if s.name not in missing]
         if not keep or len(arrays.points) == 0:
@@ -668,7 +712,7 @@ class CalibrationEngine:
             self._last_solve_start = self.clock()
             self._forget_old_samples()
             self._revision_at_last_solve = self.store.revision
-            arrays, specs, missing = self._problem()
+            arrays, specs, missing, lit = self._problem()
             n = len(arrays.points)
             self._samples_at_last_solve = len(self.store)
             self._views_at_last_solve = self.store.views_per_camera()
@@ -697,6 +741,43 @@ class CalibrationEngine:
         remap = -np.ones(len(specs), np.int64)
         remap[keep] = np.arange(len(keep))
         sel = remap[arrays.camera_index] >= 0
+        specs_kept = [specs[j] for j in keep]
+        result, kw, points, place, note = self._calibrate_once(
+            arrays, sel, remap, specs_kept, prior, searching, kin, initial, n)
+        if searching:
+            self._remember_auto_choice(result, n)
+        # With a lamp given the solve's views are corrected ones: no like-for-like other kind.
+        if lit is not None and self.settings.marker_light is None:
+            switched = self._centre_switches(result, arrays, lit, sel, remap, specs_kept)
+            if switched:
+                other = self._switch_centres(arrays, lit, switched)
+                warm = {k: c.camera for k, c in result.adjustment.cameras.items()
+                        if c.camera is not None and c.status == 'ok'}
+                if searching and self._auto_choice is not None:
+                    prior = self._auto_choice
+                again = self._calibrate_once(other, sel, remap, specs_kept, prior, False, kin,
+                                             {**(initial or {}), **warm}, n)
+                if again[0].adjustment is not None and again[0].success:
+                    arrays = other
+                    result, kw, points, place, note = again
+                    self._adopt_centres(switched)
+        outcome = self._judge(result, n, time.perf_counter() - t0)
+        if outcome.accepted:
+            self._follow_changes(outcome, arrays, points, kw['kinematics'], place)
+        if outcome.accepted and place is not None:
+            place = tip_place(result.adjustment, place)
+            if place is not None:
+                T = np.eye(4)
+                T[:3, 3] = place[0]
+                with self._lock:
+                    self.T_link_target, self.mount_std = T, place[1]
+                outcome.calibration.hyperparameters['T_link_target'] = pose_vector(T)
+                outcome.calibration.hyperparameters['place_stage'] = note
+        return self._finish(outcome)
+
+    def _calibrate_once(self, arrays, sel, remap, specs_kept, prior, searching, kin, initial,
+                        n):
+        """Return (result, kw, points, place, note) of one calibration of ``arrays[sel]``."""
         obs = Observations(remap[arrays.camera_index[sel]], arrays.point_index[sel],
                            arrays.uv[sel])
         # Every model gets the arm's Jacobian when there is one: the kinematic ones and auto
@@ -705,7 +786,6 @@ class CalibrationEngine:
         if searching or self.settings.solver.estimate_noise:
             kw['pooled_sigma_px'] = pooled_pixel_sigma(arrays.spread_px[sel],
                                                        arrays.n_frames[sel])
-        specs_kept = [specs[j] for j in keep]
         solver = self._solver_settings(searching)
         points, place, note = arrays.points, None, None
         if self.settings.point_place_guess is not None:
@@ -723,21 +803,66 @@ class CalibrationEngine:
                 and initial is not None:
             # A warm start that failed may have been poisoned: try once from scratch.
             result = self._run(calibrate, specs_kept, points, obs, prior, solver, **kw)
-        if searching:
-            self._remember_auto_choice(result, n)
-        outcome = self._judge(result, n, time.perf_counter() - t0)
-        if outcome.accepted:
-            self._follow_changes(outcome, arrays, points, kw['kinematics'], place)
-        if outcome.accepted and place is not None:
-            place = tip_place(result.adjustment, place)
-            if place is not None:
-                T = np.eye(4)
-                T[:3, 3] = place[0]
-                with self._lock:
-                    self.T_link_target, self.mount_std = T, place[1]
-                outcome.calibration.hyperparameters['T_link_target'] = pose_vector(T)
-                outcome.calibration.hyperparameters['place_stage'] = note
-        return self._finish(outcome)
+        return result, kw, points, place, note
+
+    def _centre_switches(self, result, arrays, lit, sel, remap, specs_kept):
+        """
+        Return the cameras whose other kind of lit-ball centre fits this solve clearly better.
+
+        Each camera with both kinds (a light shift that pools) is judged by
+        :func:`~armcal_ros.core.light_pooling.compare_centres` on its inlier views: the image
+        noise of the centres the solve used against that of the other kind, both from
+        residuals to the same projections.  Neither the shifts nor their own noise can tell
+        which kind is the better (core/light_pooling.py); the calibration can.  Measured on the
+        simulator's recordings (docs/BENCHMARKS.md): a centroid over clutter or under a lamp
+        close by made pooled centres twice as far off as the fits, where under even light
+        pooled centres were half as far off as the fits in one camera of the same cell.
+        """
+        adj = result.adjustment
+        if adj is None or not result.success or len(adj.inliers) != int(sel.sum()):
+            return {}
+        cam = remap[arrays.camera_index[sel]]
+        pts = arrays.point_index[sel]
+        used, other = arrays.uv[sel], lit.other_uv[sel]
+        out = {}
+        for j, spec in enumerate(specs_kept):
+            est = adj.cameras.get(spec.name)
+            rows = np.flatnonzero((cam == j) & adj.inliers)
+            if est is None or est.status != 'ok' or not len(rows) or \
+                    not np.all(np.isfinite(other[rows])):
+                continue
+            p = est.camera.project(adj.points[pts[rows]])
+            judged = compare_centres(used[rows] - p, other[rows] - p, est.redundancy)
+            if judged.switch:
+                out[spec.name] = judged
+        return out
+
+    def _switch_centres(self, arrays, lit, switched):
+        """Return ``arrays`` with the ``switched`` cameras' centres of the other kind."""
+        uv, spread = arrays.uv.copy(), arrays.spread_px.copy()
+        for name in switched:
+            c = list(arrays.camera_names).index(name)
+            rows = np.flatnonzero((arrays.camera_index == c) &
+                                  np.all(np.isfinite(lit.other_uv), axis=1))
+            uv[rows], spread[rows] = lit.other_uv[rows], lit.other_spread[rows]
+        return replace(arrays, uv=uv, spread_px=spread)
+
+    def _adopt_centres(self, switched):
+        """Make the ``switched`` cameras' other kind of centre their choice from now on."""
+        for name, judged in switched.items():
+            how = f'{judged.sigma_other:.3f} px against {judged.sigma_used:.3f} px'
+            with self._lock:
+                pooled = self.light_pooling[name]
+                if name in self._fitted_centres:
+                    self._fitted_centres.discard(name)
+                    self.light_pooling[name] = replace(pooled, status='ok', message=(
+                        f'{pooled.message.split("; ")[0]}; the pooled centres fit a '
+                        f'calibration better ({how})'))
+                else:
+                    self._fitted_centres.add(name)
+                    self.light_pooling[name] = replace(pooled, status='fits_kept', message=(
+                        f'{pooled.message}; the fitted centres are used: they fit a '
+                        f'calibration better ({how})'))
 
     def _light_corrected(self, specs, points, obs, initial, solver, kw):
         """

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from armcal_ros.core.light_pooling import MIN_VIEWS, pool_light_shift
+from armcal_ros.core.light_pooling import compare_centres, MIN_VIEWS, pool_light_shift
 from armcal_ros.engine import pooled_light_arrays
 from armcal_ros.frontend.samples import Observation, Sample
 from armcal_ros.frontend.store import SampleStore
@@ -121,3 +121,56 @@ def test_a_shift_that_is_not_a_function_of_the_place_is_refused():
     # A lamp's smooth shift with the same noise is pooled.
     lamp = _lamp_shift(points) + rng.normal(0, 0.01, (200, 2))
     assert pool_light_shift(points, lamp, own).status == 'ok'
+
+
+def _linear_fit(rng, n, params, sigma):
+    """Residuals of a least-squares fit of 2n scalar equations with ``params`` unknowns."""
+    A = rng.normal(size=(2 * n, params))
+    truth = rng.normal(size=params)
+    y = A @ truth + rng.normal(0, sigma, 2 * n)
+    fitted = A @ np.linalg.lstsq(A, y, rcond=None)[0]
+    return y, fitted, A @ truth
+
+
+@pytest.mark.parametrize('sigma_used, sigma_other', [(0.12, 0.05), (0.05, 0.12), (0.08, 0.08)])
+def test_the_other_centres_noise_is_estimated_from_residuals_to_the_same_projections(
+        sigma_used, sigma_other):
+    """
+    A known solution: a linear fit of 2n equations with p unknowns leaves r = 2n - p.
+
+    The used centres' noise is their residuals' sum of squares over r; the other kind, whose
+    errors the fit did not see, is read off residuals to the same fitted values less what the
+    fit took in of the used ones.  Averaged over draws, both are the truth within a few per
+    cent; the other kind is taken only where it is clearly the better.
+    """
+    rng = np.random.default_rng(11)
+    n, params = 60, 15
+    used_s, other_s, switches = [], [], []
+    for _ in range(200):
+        y, fitted, truth = _linear_fit(rng, n, params, sigma_used)
+        other = truth + rng.normal(0, sigma_other, 2 * n)
+        judged = compare_centres((y - fitted).reshape(n, 2), (other - fitted).reshape(n, 2),
+                                 2 * n - params)
+        used_s.append(judged.sigma_used ** 2)
+        other_s.append(judged.sigma_other ** 2)
+        switches.append(judged.switch)
+    assert np.sqrt(np.mean(used_s)) == pytest.approx(sigma_used, rel=0.03)
+    assert np.sqrt(np.mean(other_s)) == pytest.approx(sigma_other, rel=0.05)
+    rate = np.mean(switches)
+    if sigma_other < 0.5 * sigma_used:
+        assert rate == 1.0
+    elif sigma_other > sigma_used:
+        assert rate == 0.0
+    else:
+        # A tie: the margin keeps what is in use nearly always.
+        assert rate < 0.1, rate
+
+
+def test_centres_compared_with_no_redundancy_or_wrong_shapes():
+    r = np.zeros((10, 2))
+    assert not compare_centres(r, r, 0.0).switch          # a fit that took in everything
+    assert not compare_centres(r, r + np.nan, 12.0).switch
+    with pytest.raises(ValueError, match='used_residuals'):
+        compare_centres(np.zeros(10), r, 5.0)
+    with pytest.raises(ValueError, match='other_residuals'):
+        compare_centres(r, r[:-1], 5.0)

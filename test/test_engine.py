@@ -322,3 +322,52 @@ def test_problem_inputs_are_the_samples_as_the_solver_sees_them():
                                prob.measured[prob.obs.point[order]])
     np.testing.assert_allclose(inputs.obs.uv[got], prob.obs.uv[order])
     assert inputs.kinematics is None
+
+
+def test_each_camera_uses_the_kind_of_lit_ball_centre_a_calibration_fits_better():
+    """
+    Pooled centres where they are the better, the fits where the centroids carry clutter.
+
+    cam1's centroids are off by an unsmooth 0.3 px (a textured background), which its pooled
+    centres carry, and its fits by 0.05 px; cam2's centroids are off by 0.01 px plus a
+    lamp's constant shift, its fits by 0.15 px; cam3 has plain centres.  The shifts of both
+    pool (their leave-one-out errors are within their frames' noise): only a calibration
+    tells which kind is better.  Started the wrong way round in cam2, the choice turns back.
+    """
+    from armcal_ros.frontend.samples import Sample
+    prob = make_problem(120, 4, pixel_sigma=0.0, bias_sigma=1e-6)     # exact arm points
+    rng = np.random.default_rng(2)
+    names = [c.name for c in prob.cameras]
+    samples = []
+    for i, X in enumerate(prob.measured):
+        sel = prob.obs.point == i
+        obs = {}
+        for j, uv in zip(prob.obs.camera[sel], prob.obs.uv[sel]):
+            name = names[j]
+            if name == 'cam1':
+                obs[name] = Observation(uv + rng.normal(0, 0.05, 2), [0], n_frames=2,
+                                        spread_px=0.05, centroid_spread_px=0.2,
+                                        centroid_uv=uv + rng.normal(0, 0.3, 2))
+            elif name == 'cam2':
+                obs[name] = Observation(uv + rng.normal(0, 0.15, 2), [0], n_frames=2,
+                                        spread_px=0.15, centroid_spread_px=0.01,
+                                        centroid_uv=uv + [0.3, -0.2] + rng.normal(0, 0.01, 2))
+            else:
+                obs[name] = Observation(uv + rng.normal(0, 0.05, 2), [0])
+        samples.append(Sample(X, obs, stamp_ns=i))
+    eng = _engine(prob, Clock(), samples, min_samples=10, pool_light_shift=True)
+    eng._fitted_centres = {'cam2'}
+    out = eng.solve()
+    assert out.accepted, out.reason
+    pooling = eng.light_pooling
+    assert set(pooling) == {'cam1', 'cam2'}
+    assert pooling['cam1'].status == 'fits_kept', pooling['cam1'].message
+    assert 'fitted centres are used' in pooling['cam1'].message
+    assert pooling['cam2'].status == 'ok', pooling['cam2'].message
+    assert 'pooled centres fit a calibration better' in pooling['cam2'].message
+    # The solve published is the one with the better centres: cam1 fits its 0.05 px fits.
+    assert out.calibration.cameras['cam1'].rms_px < 0.1
+    # The choice stands at the next solve without being made again.
+    assert eng.solve().accepted
+    assert eng.light_pooling['cam1'].status == 'fits_kept'
+    assert eng.light_pooling['cam2'].status == 'ok'

@@ -30,6 +30,14 @@ the tool shifts its centroid with the tool's orientation, which this smooth over
 does not see: use the per-view fit (``sphere_centre: shaded``) there.  Given each shift's own
 noise, such a light is caught: the smooth then predicts left-out views far worse than their
 noise (:data:`MAX_NOISE_RATIO`), and the fitted centres are kept.
+
+Which of the two centres is better is not settled by the shifts alone: the leave-one-out
+residual d - f = (s - truth) - (c + f - truth) is the difference of the two centres' errors,
+and says nothing of which is the larger.  A centroid over a textured background is off by
+its own, unsmooth, amount that the pooled centre carries; a fit's cold start may land in a
+wrong minimum that the pooled centre does not.  A calibration of the views is the yardstick
+that tells: :func:`compare_centres` estimates each kind's image noise from its residuals
+against the same solve's projections.
 """
 
 from dataclasses import dataclass
@@ -217,3 +225,71 @@ def pool_light_shift(points, shifts, noise_var=None) -> PooledShift:
     return PooledShift(fit, kernel_sq * noise_var, k if degree is None else m,
                        float(np.sqrt(err)), 'ok', f'{how} over {m} views', points.copy(),
                        shifts.copy(), degree, noise_var)
+
+
+#: A camera changes to the other kind of centre only when that kind's image noise is below
+#: the one in use by more than this many relative standard errors of the estimate
+#: (:func:`compare_centres`): a near tie keeps what is in use, so the choice does not flip
+#: from solve to solve on the noise of the estimates (each flip costs a second solve): at two,
+#: a tie switches about once in forty solves.
+SWITCH_Z = 2.0
+
+
+@dataclass
+class CentreComparison:
+    """
+    A camera's two kinds of centre judged against one calibration (:func:`compare_centres`).
+
+    ``sigma_used`` and ``sigma_other`` the image noise per axis of the centres the solve used
+    and of the other kind (px), ``limit`` what the other must be below to be taken (px),
+    ``switch`` whether it is.
+    """
+
+    sigma_used: float
+    sigma_other: float
+    limit: float
+    switch: bool
+
+
+def compare_centres(used_residuals, other_residuals, redundancy,
+                    z=SWITCH_Z) -> CentreComparison:
+    """
+    Compare the image noise of the centres a solve used with another kind of the same views.
+
+    ``used_residuals`` (n, 2) the used centres less the solve's projections of its points
+    (the camera's inlier views), ``other_residuals`` (n, 2) the other centres less the same
+    projections, ``redundancy`` the camera's degrees of freedom left, 2n less the sum of its
+    observations' leverages h.  For noise sigma_u of the used centres and a projection error
+    delta = p - truth (what the solve took in of them),
+
+        E sum |r_u|^2 = r sigma_u^2,        E sum |delta|^2 = (2n - r) sigma_u^2,
+
+    and the other centres, whose errors e_o the solve did not see, have
+
+        E sum |r_o|^2 = E sum |e_o - delta|^2 = 2n sigma_o^2 + (2n - r) sigma_u^2,
+
+    so ``sigma_other``^2 = (sum |r_o|^2 - (2n - r) sigma_u^2) / 2n.  Errors the two kinds share
+    (a pooled centre holds the fit's smooth part) correlate e_o with delta and make
+    ``sigma_other`` an underestimate, by 10-20 % on the simulator's lamp-lit recordings
+    (docs/BENCHMARKS.md).  The other kind is taken only when it is below
+    ``sigma_used`` (1 - z sqrt(1 / 2r + 1 / 4n)): ``z`` standard errors of the difference of
+    two noise estimates, over r and 2n degrees of freedom (a noise estimated over f of them
+    has a relative standard error of 1 / sqrt(2 f)).  Errors smooth enough for the camera's
+    parameters to absorb are seen by neither estimate.
+    """
+    used = np.asarray(used_residuals, float)
+    other = np.asarray(other_residuals, float)
+    if used.ndim != 2 or used.shape[1] != 2:
+        raise ValueError(f'used_residuals must have shape (n, 2), got {used.shape}')
+    if other.shape != used.shape:
+        raise ValueError(f'other_residuals must have shape {used.shape}, got {other.shape}')
+    n2 = 2 * len(used)
+    if not (np.isfinite(redundancy) and 0 < redundancy <= n2) or \
+            not (np.all(np.isfinite(used)) and np.all(np.isfinite(other))):
+        nan = float('nan')
+        return CentreComparison(nan, nan, nan, False)
+    var_u = float(np.sum(used ** 2)) / redundancy
+    var_o = max(0.0, (float(np.sum(other ** 2)) - (n2 - redundancy) * var_u) / n2)
+    s_u, s_o = np.sqrt(var_u), np.sqrt(var_o)
+    limit = s_u * max(0.0, 1.0 - z * np.sqrt(0.5 / redundancy + 0.5 / n2))
+    return CentreComparison(s_u, s_o, limit, bool(s_o < limit))
