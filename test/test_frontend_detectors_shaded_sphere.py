@@ -9,12 +9,14 @@ nine frames in ten within 0.12 px (a ball lit from behind, a dark disc with a br
 quarter of the brightness, is fitted to 0.1-0.25 px a frame: the noise, not a bias).
 """
 from dataclasses import replace
+import os
 
 import numpy as np
 import pytest
 
 from armcal_ros.frontend.detectors import make_detector
-from armcal_ros.frontend.detectors.shaded_sphere import _Model, fit_shaded_sphere
+from armcal_ros.frontend.detectors.shaded_sphere import (_Model, _score, fit_shaded_sphere,
+                                                         radius_prior_of, RADIUS_SPREAD_MIN)
 from armcal_ros.sim.cell import OCCLUSION_NONE, simulate_cell
 from armcal_ros.sim.render import marker_signal
 
@@ -300,3 +302,66 @@ def test_a_light_prior_is_fitted_to_directions():
     spread /= np.linalg.norm(spread, axis=1)[:, None]
     assert light_prior_of(spread)[1] < 0.5
     assert light_prior_of(np.zeros((0, 3)))[1] == 0.0
+
+
+def test_a_fit_pinned_at_its_largest_radius_goes_on_from_there():
+    # A start radius under half the ball's (the moments of a crescent): the fit reaches the
+    # bound 2 x r0, is continued with the bounds about it, and converges on the ball (held at
+    # the bound it ended there, 0.1-0.2 px off, with status 'radius').
+    model = _Model(np.zeros((17, 17)), 100, 200)
+    truth = np.array([108.2, 207.7, 2.6, 0.9, 3.0, 40.0, 70.0, -90.0, 30.0])
+    image = model.image(truth)[0].reshape(17, 17)
+    for radius0 in (1.0, 1.2):
+        fit = fit_shaded_sphere(image, 100, 200, [108.0, 207.5], radius0, 1.0)
+        assert fit.ok, fit
+        assert fit.radius == pytest.approx(2.6, abs=1e-3)
+        np.testing.assert_allclose(fit.uv, truth[:2], atol=1e-3)
+
+
+def test_the_cameras_last_look_finds_a_basin_no_fixed_start_does():
+    """
+    A recorded frame (test/data/shaded_fit/README.md) whose fixed starts all end wrong.
+
+    Without priors the fit takes the least cost: lit from below, 1.5 px off; with the light
+    prior a smaller ball lit from the right side, 0.45 px off; the camera's last look, moved
+    to this blob, starts in the right basin, which the priors then prefer.
+    """
+    c = np.load(os.path.join(os.path.dirname(__file__), 'data', 'shaded_fit',
+                             'flipped_minimum.npz'))
+    args = (c['patch'].astype(float), int(c['u0']), int(c['v0']), c['uv0'], float(c['radius0']),
+            float(c['sigma0']))
+    light = (c['light_direction'], float(c['light_kappa']))
+    look = (c['look_uv'], float(c['look_radius']), float(c['look_sigma']), c['look_shading'])
+    scene = c['scene'].astype(float)
+
+    def error(**kw):
+        fit = fit_shaded_sphere(*args, scene=scene, **kw)
+        assert fit.ok, fit
+        return np.hypot(*(fit.uv - c['truth']))
+    assert error() > 1.0
+    assert error(light_prior=light, radius_prior=tuple(c['radius_prior'])) > 0.3
+    assert error(light_prior=light, radius_prior=tuple(c['radius_prior']), look=look) < 0.25
+
+
+def test_a_radius_prior_is_fitted_to_radii():
+    rng = np.random.default_rng(0)
+    radii = 2.0 * np.exp(rng.normal(0.0, 0.25, 400))
+    radius, spread = radius_prior_of(np.r_[radii, 40.0, 35.0])   # two fits on something else
+    assert radius == pytest.approx(2.0, rel=0.05) and spread == pytest.approx(0.25, rel=0.15)
+    # Fits within one dwell scatter less than places do: the spread is not taken below that.
+    assert radius_prior_of([2.0, 2.01, 1.99, 2.0, 2.0])[1] == RADIUS_SPREAD_MIN
+    assert radius_prior_of([]) is None and radius_prior_of([2.0, 0.0]) is None
+
+
+def test_the_radius_prior_ranks_fits_of_near_equal_cost():
+    def run(radius, cost):
+        theta = np.r_[10.0, 10.0, radius, 1.0, 0.0, 10.0, 0.0, -10.0, 5.0]
+        return theta, cost, 6, True, 1e-3
+    small, right = run(1.1, 600.0), run(1.8, 610.0)
+    runs = [small, right]
+    # Without the prior the least cost wins; with the ball's recent size (1.8 px, spread 0.1)
+    # the smaller ball's 0.5 in log costs 12 in log posterior against the cost's 1.3.
+    assert min(runs, key=_score(runs, 169, None)) is small
+    assert min(runs, key=_score(runs, 169, None, (1.8, 0.1))) is right
+    # A prior that spreads widely (a ball whose distance changes a lot) decides nothing here.
+    assert min(runs, key=_score(runs, 169, None, (1.8, 1.0))) is small

@@ -157,6 +157,11 @@ class _Model:
         return A @ theta[4:], A
 
 
+#: A fit whose radius ends within this fraction of its upper bound (twice the start) is
+#: pinned there (:func:`fit_shaded_sphere`).
+RADIUS_PINNED = 0.99
+
+
 #: Directions of light the cold starts try, as (p1, p2, p3) of the module's (1) (x right, y
 #: down, z towards the camera): from the camera's side, from each side, and from behind.  A
 #: ball lit from behind shows a bright rim on a dark disc, which a start lit from the front
@@ -185,8 +190,15 @@ COLD_FINALISTS = 4
 LIGHT_KAPPA_MAX = 20.0
 
 
+#: The least spread (natural log of the radius) of the radius prior: the fits' own scatter
+#: where the distance does not change (one camera's fits within a dwell, measured on the
+#: simulator's lamp-lit textured UR5 cell: 1.49-1.80 px about 1.7, some 8 %).
+RADIUS_SPREAD_MIN = 0.1
+
+
 def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
-                      max_iterations=30, tolerance=3e-3, scene=None, light_prior=None):
+                      max_iterations=30, tolerance=3e-3, scene=None, light_prior=None,
+                      radius_prior=None, look=None):
     """
     Fit the shaded-sphere model (module doc) to ``patch`` and return a :class:`ShadedFit`.
 
@@ -195,8 +207,9 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
     ``sigma0`` the start.  ``shading0`` (p0..p3) is a warm start (the previous frame's); without
     it the :data:`COLD_STARTS` race and the best finish (:data:`COLD_RACE_ITERATIONS`,
     :data:`COLD_FINALISTS`).  The
-    radius is bounded to [radius0 / 2, 2 radius0].  Converged when a step moves the centre
-    and radius by less than ``tolerance`` px.
+    radius is bounded to [radius0 / 2, 2 radius0]; a fit that ends at the upper bound
+    (:data:`RADIUS_PINNED`) goes on once from there with the bounds doubled.  Converged when a
+    step moves the centre and radius by less than ``tolerance`` px.
 
     ``scene`` (h, w), the static scene behind the ball where it is known (the detector's
     median of earlier frames), makes ``patch`` the frame minus that scene - unclipped - and
@@ -220,6 +233,21 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
     two apart is that a lamp fixed in the cell lights the ball from nearly the same side at
     every place.  An LED that turns with the tool gives fits whose directions spread, hence a
     small kappa and a prior that decides little.
+
+    ``radius_prior`` (radius, spread): the ball's size at the camera's recent places, a
+    log-normal density of that median and log-spread (:func:`radius_prior_of`).  A cold fit's
+    key then has ``(ln(r / radius))^2 / (2 spread^2)`` added.  Why: the other wrong minimum
+    is a smaller ball shifted towards the lit side, lit from nearly the right direction
+    (measured on the same cell: radius 1.1-1.2 px where the camera's fits at other places are
+    1.6-2.0, 0.3-0.7 px off), which the light prior cannot tell apart; the ball's distance,
+    hence its image's size, changes little from place to place.
+
+    ``look`` (uv (2,), radius, sigma, shading (4,)): the camera's last fit moved to this blob
+    (its centre at the same offset from the blob's centroid), one more start of the race.
+    Where the light is much the same from place to place it starts in the right basin where
+    none of the fixed starts does (measured on the same cell: every start from the blob's
+    moments ended in the flipped or the smaller ball, 1.5 and 0.4 px off, the last fit's look
+    0.17 px off).
     """
     patch = np.asarray(patch)
     if patch.ndim != 2 or min(patch.shape) < 5:
@@ -245,9 +273,18 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
         race = max(1, min(COLD_RACE_ITERATIONS, max_iterations))
         prior = light_prior is not None and light_prior[1] > 0
         starts = COLD_STARTS + ((tuple(light_prior[0]),) if prior else ())
-        runs = [_levenberg_marquardt(model, np.r_[geometry, 0.4 * top, 0.6 * top * np.asarray(
-            light), occlusion], radius0, top, 1e-3, race, tolerance) for light in starts]
-        runs.sort(key=_score(runs, model.y.size, light_prior if prior else None))
+        thetas = [np.r_[geometry, 0.4 * top, 0.6 * top * np.asarray(light), occlusion]
+                  for light in starts]
+        if look is not None:
+            uv, radius, sigma, shading = look
+            thetas.append(np.r_[np.asarray(uv, float).reshape(2),
+                                min(max(float(radius), 0.5 * radius0), 2.0 * radius0),
+                                min(max(float(sigma), SIGMA_MIN), SIGMA_MAX), level,
+                                np.asarray(shading, float).reshape(4), occlusion])
+        runs = [_levenberg_marquardt(model, theta, radius0, top, 1e-3, race, tolerance)
+                for theta in thetas]
+        key = (light_prior if prior else None, radius_prior)
+        runs.sort(key=_score(runs, model.y.size, *key))
         finals = []
         for theta, cost, it, converged, lam in runs[:COLD_FINALISTS]:
             if not converged and it < max_iterations:
@@ -255,8 +292,16 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
                     model, theta, radius0, top, lam, max_iterations - it, tolerance)
                 it += more
             finals.append((theta, cost, it, converged, lam))
-        best = min(finals, key=_score(finals, model.y.size, light_prior if prior else None))
-    theta, cost, it, converged, _ = best
+        best = min(finals, key=_score(finals, model.y.size, *key))
+    theta, cost, it, converged, lam = best
+    if theta[2] >= RADIUS_PINNED * 2.0 * radius0:
+        # Pinned at the largest radius the start allows: the start under-stated the ball (the
+        # moments of a crescent, the lit part of a ball over a brighter scene).  Once more
+        # from there, the bounds about the pinned radius.
+        radius0 = 2.0 * radius0
+        theta, cost, more, converged, _ = _levenberg_marquardt(
+            model, theta, radius0, top, lam, max_iterations, tolerance)
+        it += more
     g, coef = theta[:4], theta[4:]
     rms = math.sqrt(cost / model.y.size)
     status, message = 'ok', ''
@@ -272,25 +317,36 @@ def fit_shaded_sphere(patch, u0, v0, uv0, radius0, sigma0=1.0, shading0=None,
                      iterations=it, status=status, message=message)
 
 
-def _score(runs, pixels, light_prior):
+def _score(runs, pixels, light_prior, radius_prior=None):
     """
     Return the key that ranks ``runs`` (:func:`fit_shaded_sphere`).
 
-    Without a ``light_prior`` their cost; with one cost / (2 s^2) - kappa d . l, s^2 from the
-    least cost of ``runs``.
+    Without priors their cost; with them the negative log posterior
+
+        cost / (2 s^2) - kappa d . l + (ln(r / r_p))^2 / (2 spread^2),
+
+    s^2 from the least cost of ``runs``, each prior's term only where it is given.
     """
-    if light_prior is None:
+    if light_prior is None and radius_prior is None:
         return lambda run: run[1]
-    direction, kappa = light_prior
-    direction = np.asarray(direction, float).reshape(3)
-    kappa = min(float(kappa), LIGHT_KAPPA_MAX)
+    if light_prior is None:
+        direction, kappa = np.zeros(3), 0.0
+    else:
+        direction = np.asarray(light_prior[0], float).reshape(3)
+        kappa = min(float(light_prior[1]), LIGHT_KAPPA_MAX)
+    if radius_prior is None:
+        log_r, weight = 0.0, 0.0
+    else:
+        log_r = math.log(radius_prior[0])
+        weight = 0.5 / max(float(radius_prior[1]), RADIUS_SPREAD_MIN) ** 2
     s2 = max(min(r[1] for r in runs), 1e-12) / max(pixels - 10, 1)
 
     def score(run):
         light = run[0][6:9]
         norm = np.linalg.norm(light)
         agree = float(light @ direction) / norm if norm > 0 else 0.0
-        return run[1] / (2.0 * s2) - kappa * agree
+        size = weight * (math.log(max(run[0][2], 1e-9)) - log_r) ** 2
+        return run[1] / (2.0 * s2) - kappa * agree + size
     return score
 
 
@@ -310,6 +366,23 @@ def light_prior_of(directions):
         return np.zeros(3), 0.0
     r_ = min(r, 1.0 - 1e-9)
     return mean / r, min(r_ * (3.0 - r_ * r_) / (1.0 - r_ * r_), LIGHT_KAPPA_MAX)
+
+
+def radius_prior_of(radii):
+    """
+    Return (radius, spread) of a log-normal density fitted to ``radii`` (px), or None.
+
+    The median and 1.4826 times the median absolute deviation of their logarithms (robust to
+    a fit or two on something else), the spread at least :data:`RADIUS_SPREAD_MIN`; None for
+    an empty set or one with a radius that is not positive.
+    """
+    r = np.asarray(radii, float).ravel()
+    if len(r) == 0 or not np.all(r > 0):
+        return None
+    logs = np.log(r)
+    centre = float(np.median(logs))
+    spread = 1.4826 * float(np.median(np.abs(logs - centre)))
+    return math.exp(centre), max(spread, RADIUS_SPREAD_MIN)
 
 
 def _levenberg_marquardt(model, theta, radius0, top, lam, max_iterations, tolerance):
@@ -363,12 +436,15 @@ def _levenberg_marquardt(model, theta, radius0, top, lam, max_iterations, tolera
             res_t = y - m_t
             cost_t = res_t @ res_t
             if cost_t < cost:
+                # The step taken, not the one proposed: a radius held at its bound proposes
+                # the same step again and again.
+                step = trial - theta
                 theta, m, A, res, cost = trial, m_t, A_t, res_t, cost_t
                 lam = max(lam / 10.0, 1e-9)
                 improved = True
                 break
             lam *= 10.0
-        if not improved or np.max(np.abs(delta[:3])) < tolerance:
+        if not improved or np.max(np.abs(step[:3])) < tolerance:
             converged = True
             break
     return theta, cost, it, converged, lam

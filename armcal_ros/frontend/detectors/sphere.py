@@ -14,7 +14,8 @@ import cv2
 
 from armcal_ros.frontend.detectors.base import (check_fraction, check_positive, Detection,
                                                 Detector, to_gray, white_level)
-from armcal_ros.frontend.detectors.shaded_sphere import fit_shaded_sphere, light_prior_of
+from armcal_ros.frontend.detectors.shaded_sphere import (fit_shaded_sphere, light_prior_of,
+                                                         radius_prior_of)
 
 
 def _median(values):
@@ -86,10 +87,12 @@ class SphereDetector(Detector):
     evenly lit ball and ~1-2 ms per frame (the front end detects only still frames: a
     motion-blurred ball is not the model).  Each fit starts from the previous frame's when the
     ball has not moved (a dwell's frames converge in two or three iterations), from six light
-    directions otherwise - and, once the camera has a few fits, from where its recent fits
-    were lit, which also decides between minima that fit nearly alike (a lamp fixed in the
-    cell lights the ball from nearly the same side at every place; :func:`.fit_shaded_sphere`
-    ``light_prior``).  A fit that fails gives no detection
+    directions otherwise, and from the camera's last fit moved to the new blob - and, once the
+    camera has a few fits, from where its recent fits were lit, which also decides between
+    minima that fit nearly alike (a lamp fixed in the cell lights the ball from nearly the
+    same side at every place, and the ball's image has nearly the same size;
+    :func:`.fit_shaded_sphere` ``light_prior``, ``radius_prior`` and ``look``).  A fit that
+    fails gives no detection
     (``last_status = 'shaded_fit_failed'``): a centroid in its place would carry the bias.
 
     Static scene (``static_scene``, on by default): a camera exposed for the cell rather than
@@ -163,6 +166,12 @@ class SphereDetector(Detector):
     #: kappa about 1.4 from 5 of them and 0.7 from 15 (medians), too weak to decide much.
     LIGHT_PRIOR_FITS = 15
     LIGHT_PRIOR_MIN = 5
+    #: ... and, of those minima, the one whose size is near the ball's at the camera's last
+    #: ``RADIUS_PRIOR_FITS`` places (the radii of its last cold fits, one a place, so that
+    #: their spread is the place-to-place change of the ball's distance; a log-normal prior,
+    #: :func:`.fit_shaded_sphere` ``radius_prior``), once it has ``RADIUS_PRIOR_MIN`` of them.
+    RADIUS_PRIOR_FITS = 15
+    RADIUS_PRIOR_MIN = 5
     #: Images kept for the static scene, how often one is kept (while it is learnt, then
     #: after), and after how many intervals one is kept even if the marker has not moved.
     SCENE_FRAMES = 5
@@ -220,6 +229,7 @@ class SphereDetector(Detector):
         self._fit_start = None
         self._radii = deque(maxlen=self.RADIUS_HINT_FITS)
         self._lights = deque(maxlen=self.LIGHT_PRIOR_FITS)
+        self._place_radii = deque(maxlen=self.RADIUS_PRIOR_FITS)
         self._fit_now = True
         self._scene_frames = []
         self._scene = None
@@ -538,15 +548,18 @@ class SphereDetector(Detector):
                 at, size = got
         own = math.sqrt(max(size ** 2 - 4.0 * sigma0 ** 2, 0.25 * size ** 2))
         radius0 = max(own, hint)
-        fit = None
+        fit = warm = None
         if start is not None and np.hypot(*(centroid - start[0])) < self.WARM_START_PX:
-            fit = fit_shaded_sphere(patch, u0, v0, centroid + start[1], start[2], sigma0,
-                                    start[4], scene=behind)
+            fit = warm = fit_shaded_sphere(patch, u0, v0, centroid + start[1], start[2],
+                                           sigma0, start[4], scene=behind)
         if fit is None or not fit.ok or fit.rms > self.REFIT_RMS * start[5]:
             # No start, a failed one, or a fit much worse than the last: from several lights
             # (a warm start can carry a wrong minimum from frame to frame).
+            look = None if start is None else (centroid + start[1], start[2], start[3],
+                                               start[4])
             cold = fit_shaded_sphere(patch, u0, v0, at, radius0, sigma0, scene=behind,
-                                     light_prior=self._light_prior())
+                                     light_prior=self._light_prior(),
+                                     radius_prior=self._radius_prior(), look=look)
             if fit is None or not fit.ok or (cold.ok and cold.rms < fit.rms):
                 fit = cold
         # The fit may lie up to a radius from the blob's centroid - the ball's recent radius
@@ -558,6 +571,7 @@ class SphereDetector(Detector):
             # radii, and a start from them then fails on every later ball, so none of its fits
             # enters them again - the camera fell silent for good after a 0.25 deg knock of
             # the lamp-lit cluttered cell.  From the blob's own size the ball is found again.
+            # (Nor is the recent size a prior here.)
             again = fit_shaded_sphere(patch, u0, v0, at, own, sigma0, scene=behind,
                                       light_prior=self._light_prior())
             if again.ok:
@@ -568,6 +582,8 @@ class SphereDetector(Detector):
             self._fit_start = None
             return None
         self._radii.append(fit.radius)
+        if fit is not warm:
+            self._place_radii.append(fit.radius)
         light = np.linalg.norm(fit.shading[1:4])
         if light > 0:
             self._lights.append(fit.shading[1:4] / light)
@@ -580,6 +596,12 @@ class SphereDetector(Detector):
         if len(self._lights) < self.LIGHT_PRIOR_MIN:
             return None
         return light_prior_of(self._lights)
+
+    def _radius_prior(self):
+        """Return the radius prior of the camera's recent places, or None (too few)."""
+        if len(self._place_radii) < self.RADIUS_PRIOR_MIN:
+            return None
+        return radius_prior_of(self._place_radii)
 
     _COARSE = 4
     _COARSE_MIN_PIXELS = 160 * 120
