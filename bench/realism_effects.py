@@ -46,7 +46,7 @@ import yaml  # noqa: E402
 
 from armcal_ros.cli import main as armcal  # noqa: E402
 from armcal_ros.compare import compare  # noqa: E402
-from armcal_ros.engine import pooled_light_arrays  # noqa: E402
+from armcal_ros.engine import lit_centres  # noqa: E402
 from armcal_ros.frontend.store import SampleStore  # noqa: E402
 from armcal_ros.io.calib_files import read_cameras  # noqa: E402
 from armcal_ros.sim.cells import CELLS, realistic_lamp  # noqa: E402
@@ -114,7 +114,11 @@ def observation_errors(out, gt_dir, centre):
     store = SampleStore.load(out)
     arrays = store.arrays()
     if centre == 'shaded_pooled':
-        arrays, _ = pooled_light_arrays(arrays)
+        # Each camera's centres of the kind the solve took (report.json's light_pooling).
+        with open(os.path.join(out, 'report.json')) as f:
+            pooling = json.load(f).get('light_pooling') or {}
+        arrays = lit_centres(arrays, {k for k, v in pooling.items()
+                                      if v['status'] == 'fits_kept'}).arrays
     m = np.load(os.path.join(gt_dir, 'markers.npz'))
     names = [str(n) for n in m['camera_names']]
     stamps = {}
