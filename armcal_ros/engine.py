@@ -165,9 +165,9 @@ class LitCentres:
     Observations with each camera's chosen kind of centre (:func:`lit_centres`).
 
     ``arrays`` the samples' arrays with the chosen centres and spreads, ``pooling`` camera ->
-    its pooled light shift (status 'ok' where the pooled centres are used, 'fits_kept' where
-    they could be but the fitted ones are), ``other_uv`` and ``other_spread`` (M, ...) per
-    observation the kind not chosen (NaN where a camera has only one kind).
+    its pooled light shift as pooled (status 'ok' where it pools, whichever kind is used),
+    ``other_uv`` and ``other_spread`` (M, ...) per observation the kind not chosen (NaN where a
+    camera has only one kind).
     """
 
     arrays: SolverArrays
@@ -216,23 +216,10 @@ def lit_centres(arrays, fitted=frozenset()) -> LitCentres:
                            2.0 * np.maximum(n - 1, 0) * pooled.variance)
         if name in fitted:
             other_uv[sel], other_spread[sel] = p_uv, p_spread
-            info[name] = replace(pooled, status='fits_kept', message=(
-                f'{pooled.message}; the fitted centres are used: a calibration fits them '
-                'better'))
         else:
             other_uv[sel], other_spread[sel] = uv[sel], spread[sel]
             uv[sel], spread[sel] = p_uv, p_spread
     return LitCentres(replace(arrays, uv=uv, spread_px=spread), info, other_uv, other_spread)
-
-
-def pooled_light_arrays(arrays):
-    """
-    Return (arrays, {camera: PooledShift}): observations with centroids moved to the pooled centre.
-
-    Every camera whose shift pools gets its pooled centres (:func:`lit_centres`).
-    """
-    lit = lit_centres(arrays)
-    return lit.arrays, lit.pooling
 
 
 #: The image-noise rise test's false-refusal rate: a rise that two estimates of the same noise
@@ -411,6 +398,8 @@ class CalibrationEngine:
         #: Cameras whose fitted lit-ball centres are used though their shift pools: a
         #: calibration fitted them clearly better (:meth:`_centre_switches`).
         self._fitted_centres = set()
+        #: Camera -> why its kind of centre was last changed (shown with its pooling).
+        self._centre_notes: Dict[str, str] = {}
 
     @property
     def target_estimated(self) -> Optional[bool]:
@@ -658,7 +647,7 @@ class CalibrationEngine:
         lit = None
         if self.settings.pool_light_shift:
             lit = lit_centres(arrays, self._fitted_centres)
-            arrays, self.light_pooling = lit.arrays, lit.pooling
+            arrays, self.light_pooling = lit.arrays, self._labelled(lit.pooling)
         specs, missing = [], []
         for name in names:
             if name not in self.image_sizes:
@@ -760,7 +749,7 @@ class CalibrationEngine:
                 if again[0].adjustment is not None and again[0].success:
                     arrays = other
                     result, kw, points, place, note = again
-                    self._adopt_centres(switched)
+                    self._adopt_centres(switched, lit)
         outcome = self._judge(result, n, time.perf_counter() - t0)
         if outcome.accepted:
             self._follow_changes(outcome, arrays, points, kw['kinematics'], place)
@@ -847,22 +836,36 @@ class CalibrationEngine:
             uv[rows], spread[rows] = lit.other_uv[rows], lit.other_spread[rows]
         return replace(arrays, uv=uv, spread_px=spread)
 
-    def _adopt_centres(self, switched):
+    def _adopt_centres(self, switched, lit):
         """Make the ``switched`` cameras' other kind of centre their choice from now on."""
-        for name, judged in switched.items():
-            how = f'{judged.sigma_other:.3f} px against {judged.sigma_used:.3f} px'
-            with self._lock:
-                pooled = self.light_pooling[name]
+        with self._lock:
+            for name, judged in switched.items():
+                how = f'{judged.sigma_other:.3f} px against {judged.sigma_used:.3f} px'
                 if name in self._fitted_centres:
                     self._fitted_centres.discard(name)
-                    self.light_pooling[name] = replace(pooled, status='ok', message=(
-                        f'{pooled.message.split("; ")[0]}; the pooled centres fit a '
-                        f'calibration better ({how})'))
+                    self._centre_notes[name] = (f'the pooled centres fit a calibration '
+                                                f'better ({how})')
                 else:
                     self._fitted_centres.add(name)
-                    self.light_pooling[name] = replace(pooled, status='fits_kept', message=(
-                        f'{pooled.message}; the fitted centres are used: they fit a '
-                        f'calibration better ({how})'))
+                    self._centre_notes[name] = (f'the fitted centres are used: they fit a '
+                                                f'calibration better ({how})')
+            self.light_pooling = self._labelled(lit.pooling)
+
+    def _labelled(self, pooling):
+        """
+        Return ``pooling`` (camera -> PooledShift) as reported: the choice of centre said.
+
+        A camera whose shift pools but whose fitted centres are used has status 'fits_kept'
+        (the change test then takes its new views at their fits); the reason of the last
+        change of kind follows the pooling's own message.
+        """
+        out = {}
+        for name, p in pooling.items():
+            if p.status == 'ok' and name in self._fitted_centres:
+                p = replace(p, status='fits_kept')
+            note = self._centre_notes.get(name) if p.status in ('ok', 'fits_kept') else None
+            out[name] = replace(p, message=f'{p.message}; {note}') if note else p
+        return out
 
     def _light_corrected(self, specs, points, obs, initial, solver, kw):
         """

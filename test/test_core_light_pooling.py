@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from armcal_ros.core.light_pooling import compare_centres, MIN_VIEWS, pool_light_shift
-from armcal_ros.engine import pooled_light_arrays
+from armcal_ros.engine import lit_centres
 from armcal_ros.frontend.samples import Observation, Sample
 from armcal_ros.frontend.store import SampleStore
 
@@ -97,7 +97,8 @@ def test_the_engine_moves_centroids_to_the_pooled_centre():
                                 centroid_uv=centroid, centroid_spread_px=0.01),
             'cam2': Observation(uv=uv + 1.0, ids=[0], n_frames=3, spread_px=0.05)}))
     a = store.arrays()
-    b, info = pooled_light_arrays(a)
+    lit = lit_centres(a)
+    b, info = lit.arrays, lit.pooling
     assert set(info) == {'cam1'}                           # cam2 has no centroids
     c1 = a.camera_index == a.camera_names.index('cam1')
     c2 = ~c1
