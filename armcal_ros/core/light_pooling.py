@@ -231,7 +231,8 @@ def pool_light_shift(points, shifts, noise_var=None) -> PooledShift:
 #: the one in use by more than this many relative standard errors of the estimate
 #: (:func:`compare_centres`): a near tie keeps what is in use, so the choice does not flip
 #: from solve to solve on the noise of the estimates (each flip costs a second solve): at two,
-#: a tie switches about once in forty solves.
+#: a tie (a linear fit of 120 equations, 15 unknowns, equal noise) switched in 3.7 % of 2000
+#: draws.
 SWITCH_Z = 2.0
 
 
@@ -270,7 +271,7 @@ def compare_centres(used_residuals, other_residuals, redundancy,
 
     so ``sigma_other``^2 = (sum |r_o|^2 - (2n - r) sigma_u^2) / 2n.  Errors the two kinds share
     (a pooled centre holds the fit's smooth part) correlate e_o with delta and make
-    ``sigma_other`` an underestimate, by 10-20 % on the simulator's lamp-lit recordings
+    ``sigma_other`` an underestimate, by up to 20 % on the simulator's recordings
     (docs/BENCHMARKS.md).  The other kind is taken only when it is below
     ``sigma_used`` (1 - z sqrt(1 / 2r + 1 / 4n)): ``z`` standard errors of the difference of
     two noise estimates, over r and 2n degrees of freedom (a noise estimated over f of them
