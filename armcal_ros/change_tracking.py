@@ -382,7 +382,7 @@ class ChangeTracker:
                      for k, i in enumerate(rows) if ok[k]]
             try:
                 what, fit = size_change(model, name, views[:SIZING_VIEWS],
-                                        false_alarm=self.settings.false_alarm)
+                                        false_alarm=self.settings.false_alarm, own_scale=True)
             except (np.linalg.LinAlgError, ValueError):
                 out.append((name, rec, None))
                 continue

@@ -401,6 +401,33 @@ def test_a_move_along_the_axis_is_not_called_a_lens_change():
         assert size_change(model, cam.name, views[:100])[0] == what
 
 
+def test_the_sizing_judges_a_refocus_against_the_refits_own_misfit_not_the_predicted_noise():
+    """
+    With its own scale the F test does not depend on how wide the prediction was drawn.
+
+    The predictor here says the image noise is five times what it is (variance 25 x), as the
+    whitening of fused points overstates a refit's misfit on the simulated cells.  The 5 %
+    refocus is then hidden when the noise is taken as at least the predicted one, and found by
+    the scale-free test; the move stays a pose change under both.
+    """
+    cams, X, measured, uvs = _stream(300, 11)
+    wide = PredictionModel({c.name: c for c in cams}, {c.name: 5 * PIXEL_SIGMA for c in cams},
+                           ARM_SIGMA)
+    cam = cams[1]
+    moved = cam.copy()
+    moved.apply_pose_increment(np.radians([0.3, -0.2, 0.1]), np.array([0.002, 0.0, 0.004]))
+    refocused = cam.copy()
+    refocused.fx, refocused.fy = 1.05 * cam.fx, 1.05 * cam.fy
+    rng = np.random.default_rng(11)
+    moved_views = _views_of(moved, X, measured, uvs, rng)[:100]
+    refocused_views = _views_of(refocused, X, measured, uvs, rng)[:100]
+    assert size_change(wide, cam.name, refocused_views)[0] == 'pose'
+    what, fit = size_change(wide, cam.name, refocused_views, own_scale=True)
+    assert what == 'lens' and fit.focal_percent == pytest.approx(5.0, abs=1.0)
+    for own in (False, True):
+        assert size_change(wide, cam.name, moved_views, own_scale=own)[0] == 'pose'
+
+
 def test_the_monitors_refits_free_the_focal_length_only_where_the_views_ask_for_it():
     """
     The suspect's and the attribution's refits hold the focal length unless freeing it counts.

@@ -831,28 +831,37 @@ def explain_by_camera_change(model: PredictionModel, camera, seen, scales=None,
                            np.sum(r.reshape(-1, 2) ** 2, axis=1), depth)
 
 
-def size_change(model: PredictionModel, camera, seen, scales=None, false_alarm=1e-6):
+def size_change(model: PredictionModel, camera, seen, scales=None, false_alarm=1e-6,
+                own_scale=False):
     """
     Return (what, fit) for a changed camera's new views ``seen`` against its old calibration.
 
     Both refits of :func:`explain_by_camera_change` are made: with the focal length free and
     held.  The lens changed ('lens') if freeing it lowers chi^2 by more than chance allows at
-    ``false_alarm``: an F test, gain / (chi^2_free / (2 n - 7)) against F(1, 2 n - 7), the
-    residual variance factor taken as 1 when it is below.  The factor matters: over many
-    views the old calibration is itself off by more than the noise somewhere in the new
-    region (its intrinsics are held), and the focal length, free, absorbs part of that; the
-    gain must stand out against the misfit the refit leaves, not against the image noise
-    alone.  A focus change and a move along the optical axis look alike over a shallow
-    workspace: then it is called 'pose', the size being what a pose alone would have to
-    change by.
+    ``false_alarm``: an F test, gain / (chi^2_free / (2 n - 7)) against F(1, 2 n - 7).  The
+    denominator matters: over many views the old calibration is itself off by more than the
+    noise somewhere in the new region (its intrinsics are held), and the focal length, free,
+    absorbs part of that; the gain must stand out against the misfit the refit leaves, not
+    against the image noise alone.  A focus change and a move along the optical axis look
+    alike over a shallow workspace: then it is called 'pose', the size being what a pose
+    alone would have to change by.
+
+    Without ``own_scale`` the residual variance factor is taken as 1 where it is below (the
+    monitor's refits: at detection a free focal length lets a refit slide along the axis, and
+    the conservative side is wanted).  With it the test is the textbook F test, free of the
+    predicted noise's scale (the sizing of a declared change: the predictor's whitening of
+    points fused from the arm and the other cameras overstates a refit's misfit 3-30 times on
+    the simulated cells, which hid every 0.5 % refocus behind the noise taken as 1).
     """
     free = explain_by_camera_change(model, camera, seen, scales, false_alarm)
     held = explain_by_camera_change(model, camera, seen, scales, false_alarm, fit_focal=False)
     gain = float(np.sum(held.new_d2) - np.sum(free.new_d2))
     dof = 2 * len(free.used) - 7
     if dof > 0 and np.isfinite(gain):
-        factor = max(1.0, float(np.sum(free.new_d2)) / dof)
-        if gain / factor > float(f_dist.isf(false_alarm, 1, dof)):
+        factor = float(np.sum(free.new_d2)) / dof
+        if not own_scale:
+            factor = max(1.0, factor)
+        if factor > 0 and gain / factor > float(f_dist.isf(false_alarm, 1, dof)):
             return 'lens', free
     return 'pose', held
 
