@@ -34,6 +34,7 @@ estimates the board's pose on the link (T_link_target) when the board says so.  
 seeds the next solve and is saved as ``target.yaml`` beside the calibration.
 """
 
+import json
 import math
 import os
 import threading
@@ -61,10 +62,13 @@ from armcal_ros.core.results import Calibration, calibration_from_result
 from armcal_ros.core.target import invert, pose_vector
 from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.frontend.store import SampleStore, SolverArrays
-from armcal_ros.io.calib_files import read_extrinsics
+from armcal_ros.io.calib_files import atomic_write_text, read_extrinsics
 from armcal_ros.io.results_files import (CALIBRATION_FILE, load_calibration,
                                          read_target_scale, read_target_yaml, TARGET_FILE,
                                          write_calibration, write_target)
+
+#: Which cameras use their fitted lit-ball centres, and why (:meth:`CalibrationEngine.save`).
+CENTRES_FILE = 'lit_centres.json'
 
 
 @dataclass
@@ -1301,15 +1305,20 @@ class CalibrationEngine:
 
         Files: samples (the store's format, retired observations included), ``<camera>.yaml``
         and ``extrinsics.yaml`` for the calibrated cameras (not those withheld after a change),
-        ``calibration.json`` with the quality figures and ``changes.json`` with the declared
-        changes; a withheld camera's earlier ``<camera>.yaml`` is renamed
-        ``<camera>.before_change.yaml``.  Each file is written atomically.  Returns the list of
-        files written.
+        ``calibration.json`` with the quality figures, ``changes.json`` with the declared
+        changes and ``lit_centres.json`` with each camera's kind of lit-ball centre (a restart
+        keeps the choice rather than solving twice to make it again); a withheld camera's
+        earlier ``<camera>.yaml`` is renamed ``<camera>.before_change.yaml``.  Each file is
+        written atomically.  Returns the list of files written.
         """
         os.makedirs(directory, exist_ok=True)
         with self._lock:
             written = [self.store.save(directory), self.changes.save(directory)]
             gone = self.changes.withheld()
+            centres = dict(fitted=sorted(self._fitted_centres), notes=dict(self._centre_notes))
+        path = os.path.join(directory, CENTRES_FILE)
+        atomic_write_text(path, json.dumps(centres, indent=1))
+        written.append(path)
         cal = self.published
         if cal is not None:
             written += write_calibration(directory, cal, self.settings.base_frame,
@@ -1372,6 +1381,22 @@ class CalibrationEngine:
                 n = self.changes.load(directory, self._current)
             if n:
                 said.append(f'{n} declared change(s)')
+        centres_file = os.path.join(directory, CENTRES_FILE)
+        if os.path.exists(centres_file):
+            try:
+                with open(centres_file, encoding='utf-8') as f:
+                    doc = json.load(f)
+                fitted = {str(n) for n in doc['fitted']}
+                notes = {str(k): str(v) for k, v in doc.get('notes', {}).items()}
+            except (ValueError, KeyError, TypeError, AttributeError) as exc:
+                raise ValueError(f'{centres_file}: not a file of lit-ball centres ({exc})') \
+                    from exc
+            known = set(self.settings.camera_names)
+            with self._lock:
+                self._fitted_centres = fitted & known
+                self._centre_notes = {k: v for k, v in notes.items() if k in known}
+            if self._fitted_centres:
+                said.append(f'fitted centres for {sorted(self._fitted_centres)}')
         target_file = os.path.join(directory, TARGET_FILE)
         board = self.settings.board
         if self.target_estimated and os.path.exists(target_file):

@@ -324,7 +324,7 @@ def test_problem_inputs_are_the_samples_as_the_solver_sees_them():
     assert inputs.kinematics is None
 
 
-def test_each_camera_uses_the_kind_of_lit_ball_centre_a_calibration_fits_better():
+def test_each_camera_uses_the_kind_of_lit_ball_centre_a_calibration_fits_better(tmp_path):
     """
     Pooled centres where they are the better, the fits where the centroids carry clutter.
 
@@ -371,3 +371,11 @@ def test_each_camera_uses_the_kind_of_lit_ball_centre_a_calibration_fits_better(
     assert eng.solve().accepted
     assert eng.light_pooling['cam1'].status == 'fits_kept'
     assert eng.light_pooling['cam2'].status == 'ok'
+    eng.save(tmp_path)
+    again = _engine(prob, Clock(), min_samples=10, pool_light_shift=True)
+    assert 'fitted centres for' in again.load(tmp_path)
+    assert again._fitted_centres == {'cam1'}
+    assert 'fitted centres are used' in again._centre_notes['cam1']
+    (tmp_path / 'lit_centres.json').write_text('{"fitted": 3}')
+    with pytest.raises(ValueError, match='lit_centres.json'):
+        _engine(prob, Clock()).load(tmp_path)
