@@ -378,6 +378,15 @@ def _views_of(new, X, measured, uvs, rng):
     return views
 
 
+def _moved_and_refocused(cam):
+    """Return ``cam`` knocked by about 0.4 deg and 4.5 mm, and ``cam`` with a 5 % longer lens."""
+    moved = cam.copy()
+    moved.apply_pose_increment(np.radians([0.3, -0.2, 0.1]), np.array([0.002, 0.0, 0.004]))
+    refocused = cam.copy()
+    refocused.fx, refocused.fy = 1.05 * cam.fx, 1.05 * cam.fy
+    return moved, refocused
+
+
 def test_a_move_along_the_axis_is_not_called_a_lens_change():
     """
     A pose change that the focal length could partly absorb is a pose change (F test).
@@ -390,11 +399,8 @@ def test_a_move_along_the_axis_is_not_called_a_lens_change():
     cams, X, measured, uvs = _stream(300, 11)
     model = _model(cams)
     cam = cams[1]
-    moved = cam.copy()
-    moved.apply_pose_increment(np.radians([0.3, -0.2, 0.1]), np.array([0.002, 0.0, 0.004]))
+    moved, refocused = _moved_and_refocused(cam)
     moved.dist = np.array(moved.dist, float) + np.array([0.01, 0, 0, 0, 0])[:len(moved.dist)]
-    refocused = cam.copy()
-    refocused.fx, refocused.fy = 1.05 * cam.fx, 1.05 * cam.fy
     rng = np.random.default_rng(11)
     for new, what in ((moved, 'pose'), (refocused, 'lens')):
         views = _views_of(new, X, measured, uvs, rng)
@@ -414,10 +420,7 @@ def test_the_sizing_judges_a_refocus_against_the_refits_own_misfit_not_the_predi
     wide = PredictionModel({c.name: c for c in cams}, {c.name: 5 * PIXEL_SIGMA for c in cams},
                            ARM_SIGMA)
     cam = cams[1]
-    moved = cam.copy()
-    moved.apply_pose_increment(np.radians([0.3, -0.2, 0.1]), np.array([0.002, 0.0, 0.004]))
-    refocused = cam.copy()
-    refocused.fx, refocused.fy = 1.05 * cam.fx, 1.05 * cam.fy
+    moved, refocused = _moved_and_refocused(cam)
     rng = np.random.default_rng(11)
     moved_views = _views_of(moved, X, measured, uvs, rng)[:100]
     refocused_views = _views_of(refocused, X, measured, uvs, rng)[:100]
@@ -441,10 +444,7 @@ def test_the_monitors_refits_free_the_focal_length_only_where_the_views_ask_for_
     model = _model(cams)
     mon = ChangeMonitor(model, {c.name: 1.0 for c in cams})
     cam = cams[1]
-    moved = cam.copy()
-    moved.apply_pose_increment(np.radians([0.3, -0.2, 0.1]), np.array([0.002, 0.0, 0.004]))
-    refocused = cam.copy()
-    refocused.fx, refocused.fy = 1.05 * cam.fx, 1.05 * cam.fy
+    moved, refocused = _moved_and_refocused(cam)
     rng = np.random.default_rng(12)
     for new, focal in ((moved, 0.0), (refocused, 5.0)):
         views = _views_of(new, X, measured, uvs, rng)
