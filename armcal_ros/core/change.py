@@ -850,7 +850,7 @@ def size_change(model: PredictionModel, camera, seen, scales=None, false_alarm=1
     monitor's refits: at detection a free focal length lets a refit slide along the axis, and
     the conservative side is wanted).  With it the test is the textbook F test, free of the
     predicted noise's scale (the sizing of a declared change: the predictor's whitening of
-    points fused from the arm and the other cameras overstates a refit's misfit 3-30 times on
+    points fused from the arm and the other cameras overstates a refit's misfit 2-50 times on
     the simulated cells, which hid every 0.5 % refocus behind the noise taken as 1).
     """
     free = explain_by_camera_change(model, camera, seen, scales, false_alarm)
