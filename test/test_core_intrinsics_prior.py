@@ -28,8 +28,7 @@ def prob():
 
 
 def _solve(prob, **given):
-    # Without the weak distortion prior: the limits compare the given cameras' prior alone.
-    s = SolverSettings(pixel_sigma=0.3, intrinsics=given, distortion_sigma=None)
+    s = SolverSettings(pixel_sigma=0.3, intrinsics=given)
     return calibrate(prob.specs, prob.measured, prob.obs, PriorSettings('fixed'), s)
 
 
