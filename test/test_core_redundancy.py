@@ -16,7 +16,8 @@ from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
 from armcal_ros.core.priors import PointPrior, PriorSettings
 from armcal_ros.sim.robot_points import make_robot_problem
 
-SETTINGS = SolverSettings(pixel_sigma=0.3, max_gate_rounds=0, gate_min_px=1e9)
+SETTINGS = SolverSettings(pixel_sigma=0.3, max_gate_rounds=0, gate_min_px=1e9,
+                          distortion_sigma=None)
 
 
 @pytest.fixture(scope='module')
@@ -73,6 +74,7 @@ def test_with_known_points_the_leverages_count_the_free_parameters(prob):
     given = {'cam2': IntrinsicsPrior.from_camera(prob.cameras[1])}
     res = adjust(prob.cameras, prob.measured, prob.obs, PriorSettings('fixed'),
                  SolverSettings(pixel_sigma=0.3, max_gate_rounds=0, gate_min_px=1e9,
+                                distortion_sigma=None,
                                 intrinsics=given))
     for name, free in (('cam1', 14), ('cam2', 6), ('cam3', 14)):
         e = res.cameras[name]

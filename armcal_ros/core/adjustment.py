@@ -134,6 +134,17 @@ class SolverSettings:
     gtol: float = 1e-10
     initial_lambda: float = 1e-3
     intrinsics: Dict[str, IntrinsicsPrior] = field(default_factory=dict)
+    #: Standard deviations (k1, k2, p1, p2, k3) of a weak zero-mean prior on the free
+    #: distortion terms of every camera whose intrinsics are estimated; None: no prior.  Why:
+    #: a camera whose views cover a corner of its image does not determine its distortion
+    #: over the rest, and a young solve can trade a wild k2 for its rotation (measured on the
+    #: simulator's desk-4cam cell after 20 samples: k2 47 against 0.04 true, the camera turned
+    #: 8.4 deg; docs/BENCHMARKS.md, *changes*).  A plumb_bob lens that is not a fisheye moves
+    #: its image corners (normalised radius about 0.5) by well under 30 %: |k1|, |k2|, |k3|
+    #: about 1 at most, decentring terms p1, p2 under 0.01.  One standard deviation at those
+    #: sizes never binds a camera whose views spread over its image (the terms' own standard
+    #: deviations are then 0.002-0.05).
+    distortion_sigma: Optional[Sequence[float]] = (1.0, 1.0, 0.1, 0.1, 1.0)
 
     def validate(self):
         """Raise ValueError naming the first bad setting; return self."""
@@ -146,6 +157,11 @@ class SolverSettings:
         check_loss(self.loss, self.loss_scale)
         if not self.gate_sigmas > 0:
             raise ValueError(f'gate_sigmas must be > 0, got {self.gate_sigmas}')
+        if self.distortion_sigma is not None:
+            ds = np.asarray(self.distortion_sigma, float)
+            if ds.shape != (len(DISTORTION_NAMES),) or not np.all(ds > 0):
+                raise ValueError(f'distortion_sigma must be {len(DISTORTION_NAMES)} numbers > 0 '
+                                 f'{DISTORTION_NAMES} or None, got {self.distortion_sigma!r}')
         if self.max_iterations < 1:
             raise ValueError(f'max_iterations must be >= 1, got {self.max_iterations}')
         bad = [k for k, v in self.intrinsics.items() if not isinstance(v, IntrinsicsPrior)]
@@ -301,12 +317,22 @@ class _Problem:
         self.n_global = prior.n_global if prior.kind == 'global' else 0
         # Given intrinsics (fixed or under a prior): (mean, 1 / sigma^2) per camera, or None.
         self.intrinsic_terms = [settings.intrinsics[c.name].terms(self.layout.dist_idx)
-                                if c.name in settings.intrinsics else None for c in cameras]
+                                if c.name in settings.intrinsics else
+                                self._distortion_prior(settings) for c in cameras]
         if self.n_global:
             p = prior.precision
             # H_gg = sum_i p_i A_i^T A_i + I does not depend on the state (A is fixed).
             self.H_gg = prior.design.gram(p[:, None, None] * np.eye(3)) + np.eye(self.n_global)
             self.H_gg_diag = np.diag(self.H_gg).copy()
+
+    def _distortion_prior(self, settings):
+        """Return (mean, precision) of the weak distortion prior over a camera's block head."""
+        idx = self.layout.dist_idx
+        if settings.distortion_sigma is None or not len(idx):
+            return None
+        precision = np.zeros(4 + len(idx))
+        precision[4:] = 1.0 / np.asarray(settings.distortion_sigma, float)[idx] ** 2
+        return np.zeros(4 + len(idx)), precision
 
     def linearised(self, cams, X):
         """
