@@ -117,3 +117,19 @@ def test_bad_input_is_refused():
         BoardData(data.poses, data.points[:3], data.view, data.camera, data.corner, data.uv)
     with pytest.raises(ValueError, match='sigma_rotation'):
         MountSettings(sigma_rotation=0).validate()
+
+
+def test_two_solves_are_compared_by_their_image_noise_when_each_estimated_it():
+    # Each solve whitened by its own estimated noise has a cost near its redundancy however
+    # well it fits: the noise estimates compare, the costs do not.  With the noise given,
+    # both are weighted alike and the costs compare.
+    from types import SimpleNamespace
+    from armcal_ros.core.board_calibration import _fits_better
+
+    def result(sigma, cost, source='residuals'):
+        return SimpleNamespace(pixel_sigma=sigma, noise_source=source,
+                               adjustment=SimpleNamespace(cost=cost))
+    assert _fits_better(result(0.078, 52.4), result(0.147, 50.9))
+    assert not _fits_better(result(0.147, 50.9), result(0.078, 52.4))
+    assert _fits_better(result(0.5, 40.0, 'given'), result(0.5, 50.0, 'given'))
+    assert not _fits_better(result(0.5, 60.0, 'given'), result(0.5, 50.0, 'given'))
