@@ -247,3 +247,10 @@ def test_a_camera_with_fewer_equations_than_parameters_is_degenerate():
     assert est.status == 'degenerate'
     assert '12 equations for its 14 parameters' in est.message
     assert res.cameras['cam1'].status == 'ok'
+
+
+def test_a_distortion_prior_of_the_wrong_shape_or_sign_is_refused_by_name():
+    for bad in ((1.0, 1.0), (1.0, 1.0, 0.1, 0.1, 0.0)):
+        with pytest.raises(ValueError, match='distortion_sigma'):
+            SolverSettings(distortion_sigma=bad).validate()
+    assert SolverSettings(distortion_sigma=None).validate().distortion_sigma is None
