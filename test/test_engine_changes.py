@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from armcal_ros.core.adjustment import SolverSettings
 from armcal_ros.core.change import MEDIAN_CHI2_2, statistics
 from armcal_ros.core.evaluation import similarity_fit
 from armcal_ros.params import defaults
@@ -257,13 +258,18 @@ def test_a_pooled_shift_carried_to_a_new_place_adds_what_it_is_off_by_there():
     assert knocked == pytest.approx(added, rel=0.2)
 
 
-def _two_camera_session(change, seed):
+def _cell_session(cell_name, scenario, seed, changes=(), duration=240.0, rng=None,
+                  solver=None, **engine_kw):
+    """
+    Return (sim, samples, engine): a named cell's session at point level (0.02 px).
+
+    The engine has the cell's kinematic model; ``solver`` defaults to the node's settings.
+    """
     from armcal_ros.sim.cells import CELLS
     from armcal_ros.core.kinematic_prior import KinematicData
-    cell = CELLS['ur5-2cam']
-    sim = simulate_cell('geometric', seed, 240.0, cell.sim_settings(
-        duration=240.0, camera_changes=(change,)))
-    obs = dwell_observations(sim, 0.02, np.random.default_rng(seed))
+    sim = simulate_cell(scenario, seed, duration, CELLS[cell_name].sim_settings(
+        duration=duration, camera_changes=tuple(changes)))
+    obs = dwell_observations(sim, 0.02, np.random.default_rng(seed if rng is None else rng))
     samples = [Sample(obs.nominal[k], {
         n: Observation(uv[None], [0], n_frames=10, spread_px=0.02, stamp_ns=int(t))
         for n, uv in obs.uv[k].items()}, stamp_ns=int(t), q=obs.q[k])
@@ -274,11 +280,16 @@ def _two_camera_session(change, seed):
         return KinematicData(chain.jacobian_errors(Q, at), chain.error_names)
     eng = CalibrationEngine(EngineSettings([c.name for c in sim.cameras],
                                            PriorSettings('kinematic'),
-                                           solver_settings(defaults()), min_samples=20),
+                                           solver or solver_settings(defaults()),
+                                           min_samples=20, **engine_kw),
                             kinematics_fn=kinematics)
     for c in sim.cameras:
         eng.set_image_size(c.name, c.width, c.height)
     return sim, samples, eng
+
+
+def _two_camera_session(change, seed):
+    return _cell_session('ur5-2cam', 'geometric', seed, (change,))
 
 
 @pytest.mark.parametrize('seed', [1])
@@ -351,7 +362,7 @@ def test_a_camera_whose_own_views_doubled_is_solved_again_before_the_store_doubl
     assert due == [60]
 
 
-@pytest.mark.parametrize('distortion_sigma', [(1.0, 1.0, 0.1, 0.1, 1.0), None])
+@pytest.mark.parametrize('distortion_sigma', [SolverSettings().distortion_sigma, None])
 def test_a_young_solve_keeps_a_physical_lens_where_its_views_leave_it_loose(distortion_sigma):
     """
     The desk cell's first solve (20 samples): its side camera sees them over part of its image.
@@ -361,27 +372,12 @@ def test_a_young_solve_keeps_a_physical_lens_where_its_views_leave_it_loose(dist
     camera disagreeing with the next views.  With it the camera is within a degree, its
     distortion physical.
     """
-    from armcal_ros.sim.cells import CELLS
-    from armcal_ros.core.kinematic_prior import KinematicData
     from dataclasses import replace
-    cell = CELLS['desk-4cam']
-    sim = simulate_cell('mixed', 2, 300.0, cell.sim_settings(duration=300.0))
-    obs = dwell_observations(sim, 0.02, np.random.default_rng([2, 77]))
-    samples = [Sample(obs.nominal[k], {
-        n: Observation(uv[None], [0], n_frames=10, spread_px=0.02, stamp_ns=int(t))
-        for n, uv in obs.uv[k].items()}, stamp_ns=int(t), q=obs.q[k])
-        for k, t in enumerate(obs.stamp_ns) if obs.uv[k]][:20]
-    chain, place = sim.chain, np.asarray(sim.settings.marker_offset, float)
-
-    def kinematics(Q, at=place):
-        return KinematicData(chain.jacobian_errors(Q, at), chain.error_names)
     solver = replace(solver_settings(defaults()), distortion_sigma=distortion_sigma)
-    eng = CalibrationEngine(EngineSettings([c.name for c in sim.cameras],
-                                           PriorSettings('kinematic'), solver, min_samples=20,
-                                           detect_changes=False), kinematics_fn=kinematics)
-    for c in sim.cameras:
-        eng.set_image_size(c.name, c.width, c.height)
-    eng.feed(samples)
+    # The samples of bench/changes.py's unchanged desk-4cam session, seed 2.
+    sim, samples, eng = _cell_session('desk-4cam', 'mixed', 2, duration=300.0, rng=[2, 77],
+                                      solver=solver, detect_changes=False)
+    eng.feed(samples[:20])
     eng.solve()
     truth = {c.name: c for c in sim.cameras}
     est = eng.current.cameras['side_a'].camera
