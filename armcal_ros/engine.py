@@ -59,6 +59,7 @@ from armcal_ros.core.light_pooling import compare_centres, pool_light_shift, Poo
 from armcal_ros.core.marker_light import image_offsets
 from armcal_ros.core.priors import KINEMATIC_MODELS, PointPrior, PriorSettings
 from armcal_ros.core.results import Calibration, calibration_from_result
+from armcal_ros.core.shared_lens import lens_test
 from armcal_ros.core.target import invert, pose_vector
 from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.frontend.store import SampleStore, SolverArrays
@@ -111,6 +112,11 @@ class EngineSettings:
     #: at the centroid plus the camera's light shift pooled over its views
     #: (:mod:`armcal_ros.core.light_pooling`).
     pool_light_shift: bool = False
+    #: A camera that moved keeps its views from before the change in the solve, as a camera
+    #: of their own (its pose then; its lens shared with the camera now where
+    #: :func:`~armcal_ros.core.shared_lens.lens_test` finds it unchanged): they keep tying
+    #: the other cameras and the arm to the images.  False retires them from the solve.
+    solve_earlier_epochs: bool = True
 
     def validate(self):
         """Raise ValueError naming the first bad setting; return self."""
@@ -273,6 +279,13 @@ def _residuals_worse(old, new, ratio, margin_px, disputed=False, alpha=NOISE_RIS
             else '')
 
 
+def _kept(specs, keep, arrays):
+    """Return (camera remap, observation mask, specs) of a solve of the cameras ``keep``."""
+    remap = -np.ones(len(specs), np.int64)
+    remap[keep] = np.arange(len(keep))
+    return remap, remap[arrays.camera_index] >= 0, [specs[j] for j in keep]
+
+
 def inlier_rate(n_inliers, n_observations):
     """
     Return the expected inlier rate after ``n_inliers`` of ``n_observations``: (k + 1) / (n + 2).
@@ -404,6 +417,10 @@ class CalibrationEngine:
         self._fitted_centres = set()
         #: Camera -> why its kind of centre was last changed (shown with its pooling).
         self._centre_notes: Dict[str, str] = {}
+        #: A moved camera's earlier self in the solve (:meth:`_epoch_cameras`) -> its last
+        #: accepted estimate (the next solve's start), and -> the last lens test's verdict.
+        self._epoch_warm: Dict[str, object] = {}
+        self.epoch_lenses: Dict[str, str] = {}
 
     @property
     def target_estimated(self) -> Optional[bool]:
@@ -645,20 +662,102 @@ class CalibrationEngine:
             return prior, True
         return self._auto_choice, False
 
-    def _problem(self):
+    def _problem(self, epochs=None):
+        """
+        Return (arrays, specs, cameras without an image size, lit centres) of a solve.
+
+        ``epochs`` (name -> (camera, epoch tag), :meth:`_epoch_cameras`) adds moved cameras'
+        earlier selves after the cameras; each takes its camera's image size and choice of
+        lit-ball centre.
+        """
+        epochs = epochs or {}
         names = list(self.settings.camera_names)
-        arrays = self.store.arrays(camera_names=names)
+        arrays = self.store.arrays(camera_names=names, epochs=epochs)
         lit = None
         if self.settings.pool_light_shift:
-            lit = lit_centres(arrays, self._fitted_centres)
-            arrays, self.light_pooling = lit.arrays, self._labelled(lit.pooling)
+            fitted = set(self._fitted_centres) | {e for e, (c, _) in epochs.items()
+                                                  if c in self._fitted_centres}
+            lit = lit_centres(arrays, fitted)
+            arrays = lit.arrays
+            self.light_pooling = self._labelled({k: v for k, v in lit.pooling.items()
+                                                 if k not in epochs})
         specs, missing = [], []
-        for name in names:
-            if name not in self.image_sizes:
+        for name in list(names) + list(epochs):
+            size = self.image_sizes.get(epochs[name][0] if name in epochs else name)
+            if size is None:
                 missing.append(name)
-            w, h = self.image_sizes.get(name, (0, 0))
+            w, h = size or (0, 0)
             specs.append(CameraSpec(name, w, h))
         return arrays, specs, missing, lit
+
+    def _epoch_cameras(self):
+        """
+        Return name -> (camera, epoch tag): moved cameras' earlier selves to solve (lock held).
+
+        Each camera declared moved has its observations from before the change retired with
+        the new epoch's tag; while at least ``recalibration_samples`` of them lie on samples
+        still held (as many views as a moved camera needs to be solved again), they are
+        solved as a camera named ``<camera>#<tag>``, unless the change was sized as a change
+        of lens.
+        """
+        if not self.settings.solve_earlier_epochs or not self.changes.records:
+            return {}
+        views = self.store.retired_views()
+        out = {}
+        for rec in self.changes.records:
+            if rec.kind == 'camera' and rec.what != 'lens' and \
+                    rec.camera in self.settings.camera_names and \
+                    views.get((rec.camera, rec.epoch), 0) >= self.changes.recalibration_samples:
+                out[f'{rec.camera}#{rec.epoch}'] = (rec.camera, rec.epoch)
+        return out
+
+    def _epoch_start(self, epochs):
+        """Return each earlier self's start: its last estimate, or the camera as it was."""
+        out = {}
+        for name, (camera, tag) in epochs.items():
+            cam = self._epoch_warm.get(name)
+            if cam is None:
+                cal = self.changes.epoch_calibrations.get(tag - 1)
+                if cal is not None and camera in cal.cameras:
+                    cam = cal.cameras[camera].camera
+            if cam is not None:
+                cam = cam.copy()
+                cam.name = name
+                out[name] = cam
+        return out
+
+    def _shared_lenses(self, result, epochs, solved):
+        """
+        Return {earlier self: camera} whose lens the solve ``result`` finds unchanged.
+
+        ``solved`` are the cameras of the solve (each earlier self with a lens of its own).
+        Each verdict is kept in :attr:`epoch_lenses`.
+        """
+        adj = result.adjustment
+        if adj is None or not result.success or adj.covariance is None:
+            return {}
+        lens_changed = {(r.camera, r.epoch) for r in self.changes.records
+                        if r.kind == 'camera' and r.what == 'lens'}
+        out, notes = {}, {}
+        for name, (camera, tag) in epochs.items():
+            if name not in solved or camera not in solved or \
+                    any(adj.cameras[n].status != 'ok' for n in (name, camera)):
+                continue
+            if (camera, tag) in lens_changed:
+                notes[name] = 'left out: the change was sized as a change of lens'
+                continue
+            try:
+                test = lens_test(adj, name, camera)
+            except ValueError as exc:
+                notes[name] = f'left out: {exc}'
+                continue
+            notes[name] = (f'solved with the lens of {camera}' if test.same else
+                           'left out, its lens changed') + f' ({test.message})'
+            if test.same:
+                out[name] = camera
+        with self._lock:
+            self.epoch_lenses = notes
+        return out
 
     def problem_inputs(self) -> Optional[ProblemInputs]:
         """
@@ -705,13 +804,16 @@ class CalibrationEngine:
             self._last_solve_start = self.clock()
             self._forget_old_samples()
             self._revision_at_last_solve = self.store.revision
-            arrays, specs, missing, lit = self._problem()
+            epochs = self._epoch_cameras()
+            arrays, specs, missing, lit = self._problem(epochs)
             n = len(arrays.points)
             self._samples_at_last_solve = len(self.store)
             self._views_at_last_solve = self.store.views_per_camera()
             self._views_check_at = 0
             initial = ({k: c.camera for k, c in self._current.cameras.items()}
                        if self._current is not None else None)
+            if initial is not None:
+                initial.update(self._epoch_start(epochs))
             prior, searching = self._prior_for_solve(n)
             kin = self._kinematics(arrays)
             self.changes.count_new(self.store.views_per_camera())
@@ -719,6 +821,9 @@ class CalibrationEngine:
             restarted = {k: v for k, v in self.changes.recalibrating.items()
                          if k not in waiting}
         keep = [j for j, s in enumerate(specs) if s.name not in missing and s.name not in waiting]
+        # A camera's earlier self is solved only beside the camera: there its lens is tested.
+        kept = {specs[j].name for j in keep}
+        keep = [j for j in keep if specs[j].name not in epochs or epochs[specs[j].name][0] in kept]
         if initial is not None:
             initial = self._restart_changed(initial, restarted, arrays)
         if prior.model in KINEMATIC_MODELS and kin is None:
@@ -731,14 +836,31 @@ class CalibrationEngine:
                       f'image size unknown for {missing}: no image received yet')
             return self._finish(SolveOutcome(False, reason, None, None, n,
                                              time.perf_counter() - t0))
-        remap = -np.ones(len(specs), np.int64)
-        remap[keep] = np.arange(len(keep))
-        sel = remap[arrays.camera_index] >= 0
-        specs_kept = [specs[j] for j in keep]
+        remap, sel, specs_kept = _kept(specs, keep, arrays)
         result, kw, points, place, note = self._calibrate_once(
             arrays, sel, remap, specs_kept, prior, searching, kin, initial, n)
         if searching:
             self._remember_auto_choice(result, n)
+        shared = {}
+        if any(s.name in epochs for s in specs_kept):
+            # Each earlier self has been solved with a lens of its own; the solve is repeated
+            # with those whose lens did not change sharing it, the others left out (with a
+            # lens of its own one brought no consistent gain: docs/BENCHMARKS.md, *changes*).
+            shared = self._shared_lenses(result, epochs, {s.name for s in specs_kept})
+            if searching and self._auto_choice is not None:
+                prior, searching = self._auto_choice, False
+            warm = {k: c.camera for k, c in result.adjustment.cameras.items()
+                    if c.camera is not None and c.status == 'ok'} \
+                if result.adjustment is not None else {}
+            keep2 = [j for j in keep if specs[j].name not in epochs or specs[j].name in shared]
+            remap2, sel2, specs2 = _kept(specs, keep2, arrays)
+            again = self._calibrate_once(arrays, sel2, remap2, specs2, prior, False, kin,
+                                         {**(initial or {}), **warm}, n, shared)
+            if again[0].adjustment is not None and again[0].success:
+                result, kw, points, place, note = again
+                remap, sel, specs_kept = remap2, sel2, specs2
+            else:
+                shared = {}
         # With a lamp given the solve's views are corrected ones: no like-for-like other kind.
         if lit is not None and self.settings.marker_light is None:
             switched = self._centre_switches(result, arrays, lit, sel, remap, specs_kept)
@@ -749,13 +871,20 @@ class CalibrationEngine:
                 if searching and self._auto_choice is not None:
                     prior = self._auto_choice
                 again = self._calibrate_once(other, sel, remap, specs_kept, prior, False, kin,
-                                             {**(initial or {}), **warm}, n)
+                                             {**(initial or {}), **warm}, n, shared)
                 if again[0].adjustment is not None and again[0].success:
                     arrays = other
                     result, kw, points, place, note = again
                     self._adopt_centres(switched, lit)
-        outcome = self._judge(result, n, time.perf_counter() - t0)
+        outcome = self._judge(result, n, time.perf_counter() - t0, hidden=epochs)
         if outcome.accepted:
+            if epochs:
+                outcome.calibration.hyperparameters['earlier_epochs'] = {
+                    k: self.epoch_lenses.get(k, '') for k in epochs if k in self.epoch_lenses}
+                with self._lock:
+                    self._epoch_warm = {k: c.camera for k, c in result.adjustment.cameras.items()
+                                        if k in epochs and c.status == 'ok'}
+                arrays = arrays.without_cameras(epochs)
             self._follow_changes(outcome, arrays, points, kw['kinematics'], place)
         if outcome.accepted and place is not None:
             place = tip_place(result.adjustment, place)
@@ -769,8 +898,12 @@ class CalibrationEngine:
         return self._finish(outcome)
 
     def _calibrate_once(self, arrays, sel, remap, specs_kept, prior, searching, kin, initial,
-                        n):
-        """Return (result, kw, points, place, note) of one calibration of ``arrays[sel]``."""
+                        n, shared=None):
+        """
+        Return (result, kw, points, place, note) of one calibration of ``arrays[sel]``.
+
+        ``shared``: {camera: camera whose lens it shares} (SolverSettings.shared_lens).
+        """
         obs = Observations(remap[arrays.camera_index[sel]], arrays.point_index[sel],
                            arrays.uv[sel])
         # Every model gets the arm's Jacobian when there is one: the kinematic ones and auto
@@ -780,6 +913,8 @@ class CalibrationEngine:
             kw['pooled_sigma_px'] = pooled_pixel_sigma(arrays.spread_px[sel],
                                                        arrays.n_frames[sel])
         solver = self._solver_settings(searching)
+        if shared:
+            solver = replace(solver, shared_lens=dict(shared))
         points, place, note = arrays.points, None, None
         if self.settings.point_place_guess is not None:
             points, kin, place, initial, note = self._points_at_place(
@@ -821,7 +956,9 @@ class CalibrationEngine:
         for j, spec in enumerate(specs_kept):
             est = adj.cameras.get(spec.name)
             rows = np.flatnonzero((cam == j) & adj.inliers)
-            if est is None or est.status != 'ok' or not len(rows) or \
+            # A moved camera's earlier self takes its camera's choice (_problem).
+            if spec.name not in self.settings.camera_names or \
+                    est is None or est.status != 'ok' or not len(rows) or \
                     not np.all(np.isfinite(other[rows])):
                 continue
             p = est.camera.project(adj.points[pts[rows]])
@@ -833,7 +970,8 @@ class CalibrationEngine:
     def _switch_centres(self, arrays, lit, switched):
         """Return ``arrays`` with the ``switched`` cameras' centres of the other kind."""
         uv, spread = arrays.uv.copy(), arrays.spread_px.copy()
-        for name in switched:
+        earlier = [n for n in arrays.camera_names if n.rpartition('#')[0] in switched]
+        for name in list(switched) + earlier:
             c = list(arrays.camera_names).index(name)
             rows = np.flatnonzero((arrays.camera_index == c) &
                                   np.all(np.isfinite(lit.other_uv), axis=1))
@@ -1183,7 +1321,7 @@ class CalibrationEngine:
                 outcome.calibration.hyperparameters['target_scale'] = float(res.scale)
         return self._finish(outcome)
 
-    def _judge(self, result, n, elapsed, model=None):
+    def _judge(self, result, n, elapsed, model=None, hidden=()):
         if result.adjustment is None or not result.success:
             return SolveOutcome(False, f'solve failed: {result.message}', result, None, n, elapsed)
         used = (result.selection.settings if result.selection is not None
@@ -1202,7 +1340,7 @@ class CalibrationEngine:
             hyper['pixel_sigma_source'] = 'free network (the last search)'
         if self.settings.prior.model == 'auto':
             hyper['auto_reason'] = self.auto_reason
-        new = calibration_from_result(result, n, hyper)
+        new = calibration_from_result(result, n, hyper, hidden)
         if model:
             new.model = model      # e.g. 'correlated+mount': the board solver's own name
         with self._lock:

@@ -237,6 +237,32 @@ def test_version_1_store_files_still_load(tmp_path):
     np.testing.assert_allclose(sorted(s.point_nominal[0] for s in back), [0, 0.1, 0.2])
 
 
+def test_a_moved_cameras_retired_views_return_as_its_earlier_self_on_the_points_held():
+    store = SampleStore(min_sample_spacing=0.01)
+    for k in range(6):
+        store.add(Sample(point_nominal=[0.05 * k, 0, 0],
+                         observations={'cam1': obs(stamp=100 * k),
+                                       'cam2': obs(uv=(10.0 * k, 5.0), stamp=100 * k)},
+                         stamp_ns=100 * k))
+    store.add(Sample(point_nominal=[0, 0.5, 0], observations={'cam2': obs(stamp=50)},
+                     stamp_ns=50))
+    store.retire(300, epoch=1, camera='cam2')
+    store.retire(0, epoch=2, camera='cam1')              # nothing that old: no entry
+    # The cam2-only sample went with its view: three of the four retired are on held points.
+    assert store.retired_views() == {('cam2', 1): 3}
+    arrays = store.arrays(['cam1', 'cam2'], epochs={'cam2#1': ('cam2', 1)})
+    assert arrays.camera_names == ('cam1', 'cam2', 'cam2#1')
+    assert len(arrays.points) == 6
+    rows = np.flatnonzero(arrays.camera_index == 2)
+    np.testing.assert_allclose(arrays.uv[rows, 0], [0.0, 10.0, 20.0])
+    np.testing.assert_allclose(arrays.points[arrays.point_index[rows], 0], [0.0, 0.05, 0.1])
+    back = arrays.without_cameras(['cam2#1'])
+    plain = store.arrays(['cam1', 'cam2'])
+    assert back.camera_names == plain.camera_names
+    for key in ('camera_index', 'point_index', 'uv', 'n_frames', 'spread_px'):
+        np.testing.assert_array_equal(getattr(back, key), getattr(plain, key))
+
+
 def test_retired_observations_leave_the_solver_view_and_survive_a_restart(tmp_path):
     store = SampleStore(min_sample_spacing=0.01)
     for k in range(6):

@@ -63,6 +63,12 @@ from armcal_ros.core.kernels import kernel_matrix
 from armcal_ros.core.priors import PointPrior, PriorSettings
 from armcal_ros.core.robust import check_loss, rho, weights
 
+#: How closely two cameras that share a lens (SolverSettings.shared_lens) are held together:
+#: (fx, fy, cx, cy in px; the distortion terms).  Far below what a camera's views resolve (a
+#: focal length's standard deviation is 0.1-1 px, k1's 1e-4-1e-2), far above the doubles'
+#: resolution beside them: the pair is one lens to the solver without a second layout.
+SHARED_LENS_SIGMA = (0.01, 1e-5)
+
 # Nielsen (1999) shrinks lambda by at most 3 per good step; with steps that match the model well
 # a faster shrink saves the long linear tail after an early blow-up (measured: 50 -> 20
 # iterations from a DLT start).
@@ -145,6 +151,10 @@ class SolverSettings:
     #: sizes never binds a camera whose views spread over its image (on the demo bag the
     #: terms' own standard deviations are 0.0001-0.02).
     distortion_sigma: Optional[Sequence[float]] = (1.0, 1.0, 0.1, 0.1, 1.0)
+    #: camera name -> the camera whose lens it has: the same camera in an earlier epoch, its
+    #: pose changed by a knock but not its lens.  The two cameras' fx, fy, cx, cy and free
+    #: distortion terms are held equal (to within SHARED_LENS_SIGMA); each keeps its own pose.
+    shared_lens: Dict[str, str] = field(default_factory=dict)
 
     def validate(self):
         """Raise ValueError naming the first bad setting; return self."""
@@ -167,6 +177,11 @@ class SolverSettings:
         bad = [k for k, v in self.intrinsics.items() if not isinstance(v, IntrinsicsPrior)]
         if bad:
             raise ValueError(f'intrinsics of {bad} must be IntrinsicsPrior objects')
+        bad = [k for k, v in self.shared_lens.items()
+               if not isinstance(k, str) or not isinstance(v, str) or k == v]
+        if bad:
+            raise ValueError(f'shared_lens must map a camera name to another camera name; '
+                             f'bad entries for {bad}')
         return self
 
 
@@ -320,6 +335,12 @@ class _Problem:
         self.intrinsic_terms = [settings.intrinsics[c.name].terms(self.layout.dist_idx)
                                 if c.name in settings.intrinsics else
                                 self._distortion_prior(settings) for c in cameras]
+        index = {c.name: j for j, c in enumerate(cameras)}
+        self.shared = [(j, index[settings.shared_lens[c.name]]) for j, c in enumerate(cameras)
+                       if settings.shared_lens.get(c.name) in index]
+        head = 4 + len(self.layout.dist_idx)
+        self.shared_precision = 1.0 / np.concatenate([
+            np.full(4, SHARED_LENS_SIGMA[0]), np.full(head - 4, SHARED_LENS_SIGMA[1])]) ** 2
         if self.n_global:
             p = prior.precision
             # H_gg = sum_i p_i A_i^T A_i + I does not depend on the state (A is fixed).
@@ -384,6 +405,9 @@ class _Problem:
         for c, t in zip(cams, self.intrinsic_terms):
             if t is not None:
                 total += float(np.sum(t[1] * (self.layout.intrinsic_vector(c) - t[0]) ** 2))
+        for j, k in self.shared:
+            d = self.layout.intrinsic_vector(cams[j]) - self.layout.intrinsic_vector(cams[k])
+            total += float(np.sum(self.shared_precision * d ** 2))
         return total
 
     def normal_equations(self, cams, X, g=None, lin=None):
@@ -429,6 +453,17 @@ class _Problem:
                 k = np.arange(j * pc, j * pc + len(t[0]))
                 U[k, k] += t[1]
                 g_c[k] += t[1] * (lay.intrinsic_vector(cams[j]) - t[0])
+        # A shared lens: the term p (a_j - a_k)^2 over the two cameras' block heads.
+        p = self.shared_precision
+        for j, k in self.shared:
+            a, b = np.arange(j * pc, j * pc + len(p)), np.arange(k * pc, k * pc + len(p))
+            d = p * (lay.intrinsic_vector(cams[j]) - lay.intrinsic_vector(cams[k]))
+            U[a, a] += p
+            U[b, b] += p
+            U[a, b] -= p
+            U[b, a] -= p
+            g_c[a] += d
+            g_c[b] -= d
         g_g = np.zeros(self.n_global)
         if self.prior.kind == 'global':
             p = self.prior.precision

@@ -90,19 +90,24 @@ def _json_float(x):
     return None if not np.isfinite(x) else x
 
 
-def calibration_from_result(result: CalibrationResult, n_samples, hyper=None) -> Calibration:
+def calibration_from_result(result: CalibrationResult, n_samples, hyper=None,
+                            hidden=()) -> Calibration:
     """
     Turn a solver result into a :class:`Calibration` (pose covariances included).
 
     A camera whose estimate is not 'ok' (a degenerate fit) is left out, named with its reason
-    in :attr:`Calibration.not_calibrated`, and out of the 3-D error figures.
+    in :attr:`Calibration.not_calibrated`, and out of the 3-D error figures.  The cameras
+    named in ``hidden`` are left out silently: solved beside the others but not cameras of
+    the cell now (a moved camera's earlier self).
     """
     adj = result.adjustment
     cams = {}
     names = adj.parameter_names
     hyper = dict(hyper or {})
-    good = {name: est for name, est in adj.cameras.items() if est.status == 'ok'}
-    skipped = {name: est.message or est.status for name, est in adj.cameras.items()
+    hidden = set(hidden)
+    shown = {name: est for name, est in adj.cameras.items() if name not in hidden}
+    good = {name: est for name, est in shown.items() if est.status == 'ok'}
+    skipped = {name: est.message or est.status for name, est in shown.items()
                if name not in good}
     own, total = {}, float('nan')
     if adj.points is not None and len(adj.points) and good:

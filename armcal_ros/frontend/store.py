@@ -88,6 +88,20 @@ class SolverArrays:
         if self.centroid_spread_px is None:
             self.centroid_spread_px = np.full(m, np.nan)
 
+    def without_cameras(self, names):
+        """Return these arrays without the observations of the cameras ``names`` (points kept)."""
+        drop = set(names)
+        keep = [c for c, n in enumerate(self.camera_names) if n not in drop]
+        index = -np.ones(len(self.camera_names), np.intp)
+        index[keep] = np.arange(len(keep))
+        rows = index[self.camera_index] >= 0 if len(self.camera_index) else \
+            np.zeros(0, bool)
+        return SolverArrays(
+            self.points, self.sample_ids, tuple(self.camera_names[c] for c in keep),
+            index[self.camera_index[rows]], self.point_index[rows], self.uv[rows],
+            self.target_ids[rows], self.n_frames[rows], self.spread_px[rows],
+            self.centroid_uv[rows], self.centroid_spread_px[rows])
+
 
 class SampleStore:
     """
@@ -160,6 +174,16 @@ class SampleStore:
         for smp in self._samples:
             for name in smp.observations:
                 out[name] = out.get(name, 0) + 1
+        return out
+
+    def retired_views(self):
+        """Return (camera, epoch) -> its retired observations on samples still held."""
+        held = {smp.id for smp in self._samples}
+        out = {}
+        for tag, smp in self.retired:
+            if smp.id in held:
+                for name in smp.observations:
+                    out[(name, tag)] = out.get((name, tag), 0) + 1
         return out
 
     def clear(self):
@@ -304,21 +328,35 @@ class SampleStore:
 
     # -- solver view ----------------------------------------------------------------------
 
-    def arrays(self, camera_names=None):
+    def arrays(self, camera_names=None, epochs=None):
         """
         Return :class:`SolverArrays` in sample-id order (point targets: one 3-D point each).
 
         A board sample's corners are separate 3-D points; the engine builds their problem
         from the samples' link poses instead.
         ``camera_names`` fixes the camera indexing (observations of other cameras are left
-        out); by default every camera seen, in order of first appearance.
+        out); by default every camera seen, in order of first appearance.  ``epochs`` maps
+        further names to (camera, epoch): that camera's observations retired with that epoch
+        tag, as a camera of that name after ``camera_names`` (the camera as it was before a
+        change).  Only those on samples still held are included: the points stay the
+        samples'.
         """
         names = self.camera_names if camera_names is None else tuple(camera_names)
+        epochs = dict(epochs or {})
+        names = names + tuple(e for e in epochs if e not in names)
         cam_index = {name: i for i, name in enumerate(names)}
         samples = sorted(self._samples, key=lambda s: s.id)
+        old = {}
+        if epochs:
+            tags = {(cam, int(tag)): name for name, (cam, tag) in epochs.items()}
+            for tag, smp in self.retired:
+                for cam, o in smp.observations.items():
+                    name = tags.get((cam, tag))
+                    if name is not None:
+                        old.setdefault(smp.id, []).append((name, o))
         cam, pidx, uv, tid, nfr, spr, cuv, cspr = [], [], [], [], [], [], [], []
         for i, s in enumerate(samples):
-            for name, obs in s.observations.items():
+            for name, obs in list(s.observations.items()) + old.get(s.id, []):
                 c = cam_index.get(name)
                 if c is None:
                     continue
