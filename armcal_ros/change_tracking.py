@@ -5,7 +5,9 @@ Following a cell that changes: the engine's record of declared changes and recal
 calibration.  This module keeps what the engine needs around it:
 
 - the *epochs*: a change starts a new one; the changed camera's observations from before it are
-  retired in the store (kept, tagged, unused), every other camera and the arm keep theirs;
+  retired in the store (kept, tagged, no longer its views; the engine solves them as the
+  camera as it was, ``CalibrationEngine._epoch_cameras``), every other camera and the arm keep
+  theirs;
 - the cameras being recalibrated: a camera that moved is withheld (its calibration no longer
   describes it) until it has ``recalibration_samples`` new observations and a solve that
   includes them has been accepted; it is then started from a PnP of its new observations with

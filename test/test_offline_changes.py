@@ -40,6 +40,9 @@ def test_a_knocked_camera_is_found_and_recalibrated_offline(knocked_bag, tmp_pat
     assert abs(e['rotation_deg'] - 1.0) < 0.15 and e['translation_mm'] < 8.0
     assert report['changes']['withheld'] == []
     assert res.outcome.accepted
+    # cam2's views from before the knock were solved as cam2 as it was, with its lens.
+    said = report['chosen']['earlier_epochs'][f"cam2#{e['epoch']}"]
+    assert said.startswith('solved with the lens of cam2'), said
     # The final calibration is of the cameras at the end; epoch 0's of those before the knock.
     final = {c.name: c for c in read_cameras(str(gt))[1]}
     est = {c.name: c for c in read_cameras(str(out))[1]}

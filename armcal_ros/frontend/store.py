@@ -18,7 +18,8 @@ Policy (memory and solve time are bounded by the workspace, not by the session's
 
 A camera that moved (or a changed arm) starts a new *epoch*: :meth:`SampleStore.retire` moves its
 observations from before the change out of the samples into ``retired``, tagged with the epoch,
-where they are kept (and saved) but never used; a sample left with no observation goes with them.
+where they are kept (and saved); :meth:`SampleStore.arrays` gives them back on request as a camera
+of another name (the camera as it was).  A sample left with no observation goes with them.
 
 "Distance" between two samples is that of their nominal points; for an extended target (a
 board) it is the largest distance between corresponding reference points
