@@ -108,3 +108,16 @@ def test_a_camera_whose_last_fit_was_degenerate_says_so():
     assert st[1].values['last_fit_unusable'] == why and 'fx' in st[1].values
     assert st[2].level == 1 and st[2].message == f'not calibrated yet: its fit is not a ' \
         f'calibration ({why})'
+
+
+def test_a_moved_cameras_status_says_how_its_earlier_views_were_solved():
+    from armcal_ros.core.camera import Camera
+    from armcal_ros.core.results import Calibration, CameraCalibration
+    cams = {n: CameraCalibration(Camera(n, 640, 480, 800.0, 800.0, 320.0, 240.0), {},
+                                 np.eye(6), 0.2, 40, 40) for n in ('cam1', 'cam2')}
+    said = 'solved with the lens of cam2 (Wald 5.9 (limit 20.1, 8 dof), ...: one lens)'
+    cal = Calibration(cams, 'kinematic', 1.0, 40, 0.1, 1.7e9, 'converged', 'ok',
+                      {'earlier_epochs': {'cam2#1': said}}, {})
+    st = diagnostic_statuses(_state(calibration=cal))
+    assert not any(k.startswith('views_before_change') for k in st[1].values)
+    assert st[2].values['views_before_change_1'] == f'cam2#1: {said}'

@@ -185,6 +185,10 @@ def camera_status(name, s: NodeState, node_name='armcal') -> Status:
     if mine:
         values['last_change'] = mine[-1].summary(s.start_ns)
         values['changes'] = len(mine)
+    earlier = s.calibration.hyperparameters.get('earlier_epochs') if s.calibration else None
+    for who, said in sorted((earlier or {}).items()):
+        if who.rpartition('#')[0] == name:
+            values[f'views_before_change_{who.rpartition("#")[2]}'] = f'{who}: {said}'
     if name in s.withheld:
         said = (mine[-1].summary(s.start_ns, s.recalibration_samples) if mine
                 else f'{name} changed')
