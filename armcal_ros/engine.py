@@ -702,8 +702,8 @@ class CalibrationEngine:
         that, the lens test would judge on the camera's first few new views, too few to see
         a small refocus: measured on a lamp-lit cluttered PUMA recording, a 0.5 % refocus
         passed it at the recalibrating solve (focal z -0.56 on 20 new views) and failed it at
-        the next (z -3.02 on 41); the calibration accepted in between, one lens bent to both
-        epochs, led to a reported disagreement.
+        the next, 21 samples later (z -3.02); the calibration accepted in between, one lens
+        bent to both epochs, led to a reported disagreement.
         """
         if not self.settings.solve_earlier_epochs or not self.changes.records:
             return {}
