@@ -23,7 +23,7 @@ import json
 import os
 from collections import deque
 from dataclasses import asdict, dataclass, field
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -53,6 +53,17 @@ PENDING_VIEWS = CONFIRM_OBSERVATIONS + ONSET_SLACK
 #: places it was not fitted to is measured (ArmPrediction.forward_error): 6 points give the
 #: RMS of 18 coordinates, within about a sixth.
 MIN_FORWARD_SAMPLES = 6
+
+
+def earlier_self(camera: str, epoch: int) -> str:
+    """Return the name ``camera``'s views retired at the start of ``epoch`` are solved under."""
+    return f'{camera}#{int(epoch)}'
+
+
+def of_earlier_self(name: str) -> Optional[Tuple[str, int]]:
+    """Return (camera, epoch) of an :func:`earlier_self` name; None for any other name."""
+    camera, sep, tag = name.rpartition('#')
+    return (camera, int(tag)) if sep and camera and tag.isdigit() else None
 
 
 @dataclass

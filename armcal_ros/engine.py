@@ -46,7 +46,8 @@ import numpy as np
 from scipy.stats import f as f_distribution
 from threadpoolctl import threadpool_limits
 
-from armcal_ros.change_tracking import ArmPrediction, ChangeTracker, CHANGES_FILE
+from armcal_ros.change_tracking import (ArmPrediction, ChangeTracker, CHANGES_FILE,
+                                        earlier_self, of_earlier_self)
 from armcal_ros.core.adjustment import Observations, SolverSettings
 from armcal_ros.core.board_calibration import BoardData, calibrate_board, MountSettings
 from armcal_ros.core.calibration import calibrate, CalibrationResult, CameraSpec
@@ -713,7 +714,7 @@ class CalibrationEngine:
             if rec.kind == 'camera' and rec.what == 'pose' and \
                     rec.camera in self.settings.camera_names and \
                     views.get((rec.camera, rec.epoch), 0) >= self.changes.recalibration_samples:
-                out[f'{rec.camera}#{rec.epoch}'] = (rec.camera, rec.epoch)
+                out[earlier_self(rec.camera, rec.epoch)] = (rec.camera, rec.epoch)
         return out
 
     def _epoch_start(self, epochs):
@@ -970,7 +971,8 @@ class CalibrationEngine:
     def _switch_centres(self, arrays, lit, switched):
         """Return ``arrays`` with the ``switched`` cameras' centres of the other kind."""
         uv, spread = arrays.uv.copy(), arrays.spread_px.copy()
-        earlier = [n for n in arrays.camera_names if n.rpartition('#')[0] in switched]
+        earlier = [n for n in arrays.camera_names
+                   if (of_earlier_self(n) or ('',))[0] in switched]
         for name in list(switched) + earlier:
             c = list(arrays.camera_names).index(name)
             rows = np.flatnonzero((arrays.camera_index == c) &

@@ -424,3 +424,10 @@ def test_a_knocked_cameras_earlier_views_sharing_its_lens_recalibrate_it_better(
     assert 'one lens' in eng.current.hyperparameters['earlier_epochs']['left#1']
     assert errors[True]['left'] < errors[False]['left'], errors
     assert errors[True]['right'] < 1.1 * errors[False]['right'], errors
+
+
+def test_an_earlier_selfs_name_gives_back_its_camera_and_epoch():
+    from armcal_ros.change_tracking import earlier_self, of_earlier_self
+    assert of_earlier_self(earlier_self('cam#2', 3)) == ('cam#2', 3)
+    for other in ('cam2', 'cam2#', '#3', 'cam2#x'):
+        assert of_earlier_self(other) is None

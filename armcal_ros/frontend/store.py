@@ -95,13 +95,12 @@ class SolverArrays:
         keep = [c for c, n in enumerate(self.camera_names) if n not in drop]
         index = -np.ones(len(self.camera_names), np.intp)
         index[keep] = np.arange(len(keep))
-        rows = index[self.camera_index] >= 0 if len(self.camera_index) else \
-            np.zeros(0, bool)
-        return SolverArrays(
-            self.points, self.sample_ids, tuple(self.camera_names[c] for c in keep),
-            index[self.camera_index[rows]], self.point_index[rows], self.uv[rows],
-            self.target_ids[rows], self.n_frames[rows], self.spread_px[rows],
-            self.centroid_uv[rows], self.centroid_spread_px[rows])
+        rows = index[self.camera_index] >= 0
+        per_observation = ('point_index', 'uv', 'target_ids', 'n_frames', 'spread_px',
+                           'centroid_uv', 'centroid_spread_px')
+        return replace(self, camera_names=tuple(self.camera_names[c] for c in keep),
+                       camera_index=index[self.camera_index[rows]],
+                       **{k: getattr(self, k)[rows] for k in per_observation})
 
 
 class SampleStore:

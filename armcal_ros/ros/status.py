@@ -13,6 +13,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from armcal_ros.change_tracking import of_earlier_self
 from armcal_ros.core.camera import Camera
 from armcal_ros.frontend.collector import why_few_samples
 
@@ -187,8 +188,9 @@ def camera_status(name, s: NodeState, node_name='armcal') -> Status:
         values['changes'] = len(mine)
     earlier = s.calibration.hyperparameters.get('earlier_epochs') if s.calibration else None
     for who, said in sorted((earlier or {}).items()):
-        if who.rpartition('#')[0] == name:
-            values[f'views_before_change_{who.rpartition("#")[2]}'] = f'{who}: {said}'
+        camera, epoch = of_earlier_self(who) or ('', 0)
+        if camera == name:
+            values[f'views_before_change_{epoch}'] = f'{who}: {said}'
     if name in s.withheld:
         said = (mine[-1].summary(s.start_ns, s.recalibration_samples) if mine
                 else f'{name} changed')
