@@ -60,7 +60,7 @@ from armcal_ros.core.light_pooling import compare_centres, pool_light_shift, Poo
 from armcal_ros.core.marker_light import image_offsets
 from armcal_ros.core.priors import KINEMATIC_MODELS, PointPrior, PriorSettings
 from armcal_ros.core.results import Calibration, calibration_from_result
-from armcal_ros.core.shared_lens import lens_test
+from armcal_ros.core.earlier_self import lens_test, pose_test
 from armcal_ros.core.target import invert, pose_vector
 from armcal_ros.frontend.samples import BoardTarget
 from armcal_ros.frontend.store import SampleStore, SolverArrays
@@ -113,10 +113,11 @@ class EngineSettings:
     #: at the centroid plus the camera's light shift pooled over its views
     #: (:mod:`armcal_ros.core.light_pooling`).
     pool_light_shift: bool = False
-    #: A camera that moved keeps its views from before the change in the solve, as a camera
-    #: of their own (its pose then; its lens shared with the camera now where
-    #: :func:`~armcal_ros.core.shared_lens.lens_test` finds it unchanged): they keep tying
-    #: the other cameras and the arm to the images.  False retires them from the solve.
+    #: A camera that changed keeps its views from before the change in the solve, as a camera
+    #: of their own (its earlier self) that shares with the camera now what the change left:
+    #: a moved camera's lens, a refocused camera's pose, where
+    #: :mod:`~armcal_ros.core.earlier_self`'s tests find it unchanged.  They keep tying the
+    #: other cameras and the arm to the images.  False retires them from the solve.
     solve_earlier_epochs: bool = True
 
     def validate(self):
@@ -418,10 +419,13 @@ class CalibrationEngine:
         self._fitted_centres = set()
         #: Camera -> why its kind of centre was last changed (shown with its pooling).
         self._centre_notes: Dict[str, str] = {}
-        #: A moved camera's earlier self in the solve (:meth:`_epoch_cameras`) -> its last
-        #: accepted estimate (the next solve's start), and -> the last lens test's verdict.
+        #: A changed camera's earlier self in the solve (:meth:`_epoch_cameras`) -> its last
+        #: accepted estimate (the next solve's start), -> what it may share with its camera
+        #: ('lens' after a move, 'pose' after a lens change), and -> the last test's verdict.
         self._epoch_warm: Dict[str, object] = {}
-        self.epoch_lenses: Dict[str, str] = {}
+        self._epoch_share: Dict[str, str] = {}
+        self._epoch_until: Dict[str, int] = {}
+        self.epoch_verdicts: Dict[str, str] = {}
 
     @property
     def target_estimated(self) -> Optional[bool]:
@@ -673,7 +677,9 @@ class CalibrationEngine:
         """
         epochs = epochs or {}
         names = list(self.settings.camera_names)
-        arrays = self.store.arrays(camera_names=names, epochs=epochs)
+        arrays = self.store.arrays(camera_names=names, epochs=epochs,
+                                   until_ns={k: v for k, v in self._epoch_until.items()
+                                             if k in epochs})
         lit = None
         if self.settings.pool_light_shift:
             fitted = set(self._fitted_centres) | {e for e, (c, _) in epochs.items()
@@ -693,28 +699,58 @@ class CalibrationEngine:
 
     def _epoch_cameras(self):
         """
-        Return name -> (camera, epoch tag): moved cameras' earlier selves to solve (lock held).
+        Return name -> (camera, epoch tag): changed cameras' earlier selves to solve (lock held).
 
-        Each camera declared moved has its observations from before the change retired with
+        Each camera declared changed has its observations from before the change retired with
         the new epoch's tag; while at least ``recalibration_samples`` of them lie on samples
-        still held (as many views as a moved camera needs to be solved again), they are
-        solved as a camera named ``<camera>#<tag>`` once the change has been sized as a move
-        (``what == 'pose'``: after the first solve that recalibrated the camera).  Before
-        that, the lens test would judge on the camera's first few new views, too few to see
-        a small refocus: measured on a lamp-lit cluttered PUMA recording, a 0.5 % refocus
+        still held (as many views as a changed camera needs to be solved again), they are
+        solved as a camera named ``<camera>#<tag>`` once the change has been sized (after the
+        first solve that recalibrated the camera): a move (``what == 'pose'``) may share the
+        lens, a lens change (``'lens'``) the pose (:attr:`_epoch_share`).  Before the sizing,
+        the tests would judge on the camera's first few new views, too few to see a small
+        refocus: measured on a lamp-lit cluttered PUMA recording, a 0.5 % refocus
         passed it at the recalibrating solve (focal z -0.56 on 20 new views) and failed it at
         the next, 21 samples later (z -3.02); the calibration accepted in between, one lens
         bent to both epochs, led to a reported disagreement.
         """
         if not self.settings.solve_earlier_epochs or not self.changes.records:
             return {}
-        views = self.store.retired_views()
-        out = {}
+        until = self._epoch_limits()
+        views = self.store.retired_views(until)
+        out, share = {}, {}
         for rec in self.changes.records:
-            if rec.kind == 'camera' and rec.what == 'pose' and \
+            if rec.kind == 'camera' and rec.what in ('pose', 'lens') and \
                     rec.camera in self.settings.camera_names and \
                     views.get((rec.camera, rec.epoch), 0) >= self.changes.recalibration_samples:
-                out[earlier_self(rec.camera, rec.epoch)] = (rec.camera, rec.epoch)
+                name = earlier_self(rec.camera, rec.epoch)
+                out[name] = (rec.camera, rec.epoch)
+                share[name] = 'lens' if rec.what == 'pose' else 'pose'
+        self._epoch_share = share
+        self._epoch_until = {earlier_self(*k): v for k, v in until.items()}
+        return out
+
+    def _epoch_limits(self):
+        """
+        Return (camera, epoch) -> the time before which its retired views are trusted.
+
+        A disagreement reported on a camera's views (nothing retired: no single change
+        explained them) before the change later declared on it is most likely that change's
+        first sign, found before it could be told apart: measured on a 0.5 % refocus
+        (bench/changes.py's ur5-2cam, seed 8) the report's onset was the refocus's to 0.3 s
+        and the declared onset 50 s late, 18 views of the new lens among the old.  Retired
+        views are all from before the declared onset; those from the report's onset on are
+        left out of the earlier self, which has one lens and one pose.
+        """
+        out, since = {}, {}
+        for rec in sorted(self.changes.records, key=lambda r: r.detected_ns):
+            if rec.camera is None:
+                continue
+            if rec.kind in ('unexplained', 'disagreement'):
+                since.setdefault(rec.camera, rec.onset_ns)
+            elif rec.kind == 'camera':
+                first = since.pop(rec.camera, None)
+                if first is not None and first < rec.onset_ns:
+                    out[(rec.camera, rec.epoch)] = first
         return out
 
     def _epoch_start(self, epochs):
@@ -732,32 +768,42 @@ class CalibrationEngine:
                 out[name] = cam
         return out
 
-    def _shared_lenses(self, result, epochs, solved):
+    def _shared_parts(self, result, epochs, solved):
         """
-        Return {earlier self: camera} whose lens the solve ``result`` finds unchanged.
+        Return {earlier self: (camera, 'lens' or 'pose')}: what the solve finds unchanged.
 
-        ``solved`` are the cameras of the solve (each earlier self with a lens of its own).
-        Each verdict is kept in :attr:`epoch_lenses`.
+        ``solved`` are the cameras of the solve ``result`` (each earlier self with a lens and
+        a pose of its own).  Each earlier self is tested first for the part its change's
+        sizing says it left (:attr:`_epoch_share`), then for the other: a small refocus can
+        be sized as a move along the axis, and its pose is then what stayed.  The first
+        part found unchanged is shared; with neither the earlier self is left out.  Each
+        verdict is kept in :attr:`epoch_verdicts`.
         """
         adj = result.adjustment
         if adj is None or not result.success or adj.covariance is None:
             return {}
+        tests = {'lens': lens_test, 'pose': pose_test}
         out, notes = {}, {}
         for name, (camera, _) in epochs.items():
             if name not in solved or camera not in solved or \
                     any(adj.cameras[n].status != 'ok' for n in (name, camera)):
                 continue
-            try:
-                test = lens_test(adj, name, camera)
-            except ValueError as exc:
-                notes[name] = f'left out: {exc}'
-                continue
-            notes[name] = (f'solved with the lens of {camera}' if test.same else
-                           'left out, its lens changed') + f' ({test.message})'
-            if test.same:
-                out[name] = camera
+            first = self._epoch_share.get(name, 'lens')
+            said = []
+            for part in (first, 'pose' if first == 'lens' else 'lens'):
+                try:
+                    test = tests[part](adj, name, camera)
+                except ValueError as exc:
+                    said.append(f'{part}: {exc}')
+                    continue
+                said.append(f'{part}: {test.message}')
+                if test.same:
+                    out[name] = (camera, part)
+                    break
+            notes[name] = (f'solved with the {out[name][1]} of {camera}' if name in out else
+                           'left out, its lens and its pose changed') + f' ({"; ".join(said)})'
         with self._lock:
-            self.epoch_lenses = notes
+            self.epoch_verdicts = notes
         return out
 
     def problem_inputs(self) -> Optional[ProblemInputs]:
@@ -822,7 +868,7 @@ class CalibrationEngine:
             restarted = {k: v for k, v in self.changes.recalibrating.items()
                          if k not in waiting}
         keep = [j for j, s in enumerate(specs) if s.name not in missing and s.name not in waiting]
-        # A camera's earlier self is solved only beside the camera: there its lens is tested.
+        # A camera's earlier self is solved only beside the camera: there what it shares is tested.
         kept = {specs[j].name for j in keep}
         keep = [j for j in keep if specs[j].name not in epochs or epochs[specs[j].name][0] in kept]
         if initial is not None:
@@ -844,10 +890,11 @@ class CalibrationEngine:
             self._remember_auto_choice(result, n)
         shared = {}
         if any(s.name in epochs for s in specs_kept):
-            # Each earlier self has been solved with a lens of its own; the solve is repeated
-            # with those whose lens did not change sharing it, the others left out (with a
-            # lens of its own one brought no consistent gain: docs/BENCHMARKS.md, *changes*).
-            shared = self._shared_lenses(result, epochs, {s.name for s in specs_kept})
+            # Each earlier self has been solved with a lens and a pose of its own; the solve
+            # is repeated with those whose lens (or pose) did not change sharing it, the
+            # others left out (with everything its own one brought no consistent gain:
+            # docs/BENCHMARKS.md, *changes*).
+            shared = self._shared_parts(result, epochs, {s.name for s in specs_kept})
             if searching and self._auto_choice is not None:
                 prior, searching = self._auto_choice, False
             warm = {k: c.camera for k, c in result.adjustment.cameras.items()
@@ -881,7 +928,7 @@ class CalibrationEngine:
         if outcome.accepted:
             if epochs:
                 outcome.calibration.hyperparameters['earlier_epochs'] = {
-                    k: self.epoch_lenses.get(k, '') for k in epochs if k in self.epoch_lenses}
+                    k: self.epoch_verdicts.get(k, '') for k in epochs if k in self.epoch_verdicts}
                 with self._lock:
                     self._epoch_warm = {k: c.camera for k, c in result.adjustment.cameras.items()
                                         if k in epochs and c.status == 'ok'}
@@ -903,7 +950,8 @@ class CalibrationEngine:
         """
         Return (result, kw, points, place, note) of one calibration of ``arrays[sel]``.
 
-        ``shared``: {camera: camera whose lens it shares} (SolverSettings.shared_lens).
+        ``shared``: {camera: (camera whose lens or pose it shares, 'lens' or 'pose')}
+        (SolverSettings.shared_lens, shared_pose).
         """
         obs = Observations(remap[arrays.camera_index[sel]], arrays.point_index[sel],
                            arrays.uv[sel])
@@ -915,7 +963,9 @@ class CalibrationEngine:
                                                        arrays.n_frames[sel])
         solver = self._solver_settings(searching)
         if shared:
-            solver = replace(solver, shared_lens=dict(shared))
+            solver = replace(
+                solver, shared_lens={k: c for k, (c, p) in shared.items() if p == 'lens'},
+                shared_pose={k: c for k, (c, p) in shared.items() if p == 'pose'})
         points, place, note = arrays.points, None, None
         if self.settings.point_place_guess is not None:
             points, kin, place, initial, note = self._points_at_place(

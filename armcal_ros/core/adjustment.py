@@ -54,6 +54,7 @@ from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, lapack, LinAlgError
+from scipy.spatial.transform import Rotation
 
 from armcal_ros.core.camera import (Camera, DISTORTION_NAMES, INTRINSIC_NAMES,
                                     project_with_jacobians)
@@ -68,6 +69,11 @@ from armcal_ros.core.robust import check_loss, rho, weights
 #: focal length's standard deviation is 0.1-1 px, k1's 1e-4-1e-2), far above the doubles'
 #: resolution beside them: the pair is one lens to the solver without a second layout.
 SHARED_LENS_SIGMA = (0.01, 1e-5)
+#: How closely two cameras that share a pose (SolverSettings.shared_pose) are held together:
+#: (rotation rad, translation m).  A camera's rotation is known to 1e-3-1e-2 rad and its
+#: translation to 1e-3-1e-2 m here; 1e-5 is a hundred times tighter, and a tie of precision
+#: 1e10 beside image terms of 1e9-1e12 costs nothing in conditioning.
+SHARED_POSE_SIGMA = (1e-5, 1e-5)
 
 # Nielsen (1999) shrinks lambda by at most 3 per good step; with steps that match the model well
 # a faster shrink saves the long linear tail after an early blow-up (measured: 50 -> 20
@@ -155,6 +161,10 @@ class SolverSettings:
     #: pose changed by a knock but not its lens.  The two cameras' fx, fy, cx, cy and free
     #: distortion terms are held equal (to within SHARED_LENS_SIGMA); each keeps its own pose.
     shared_lens: Dict[str, str] = field(default_factory=dict)
+    #: camera name -> the camera whose pose it has: the same camera in an earlier epoch, its
+    #: lens changed by a refocus or a zoom but not its pose.  The two cameras' rotations and
+    #: translations are held equal (to within SHARED_POSE_SIGMA); each keeps its own lens.
+    shared_pose: Dict[str, str] = field(default_factory=dict)
 
     def validate(self):
         """Raise ValueError naming the first bad setting; return self."""
@@ -177,11 +187,13 @@ class SolverSettings:
         bad = [k for k, v in self.intrinsics.items() if not isinstance(v, IntrinsicsPrior)]
         if bad:
             raise ValueError(f'intrinsics of {bad} must be IntrinsicsPrior objects')
-        bad = [k for k, v in self.shared_lens.items()
-               if not isinstance(k, str) or not isinstance(v, str) or k == v]
-        if bad:
-            raise ValueError(f'shared_lens must map a camera name to another camera name; '
-                             f'bad entries for {bad}')
+        for label, shared in (('shared_lens', self.shared_lens),
+                              ('shared_pose', self.shared_pose)):
+            bad = [k for k, v in shared.items()
+                   if not isinstance(k, str) or not isinstance(v, str) or k == v]
+            if bad:
+                raise ValueError(f'{label} must map a camera name to another camera name; '
+                                 f'bad entries for {bad}')
         return self
 
 
@@ -299,6 +311,12 @@ class _Layout:
         return np.concatenate([cam.intrinsics(), cam.dist[self.dist_idx]])
 
 
+def _pose_difference(a: Camera, b: Camera):
+    """Return (log(R_a R_b^T), t_a - t_b) (6,): zero where two cameras have one pose."""
+    dR = Rotation.from_matrix(a.rotation @ b.rotation.T).as_rotvec()
+    return np.concatenate([dR, a.translation - b.translation])
+
+
 def _apply_camera_step(cam: Camera, step, layout: _Layout):
     new = cam.copy()
     new.set_intrinsics(cam.intrinsics() + step[:4])
@@ -341,6 +359,10 @@ class _Problem:
         head = 4 + len(self.layout.dist_idx)
         self.shared_precision = 1.0 / np.concatenate([
             np.full(4, SHARED_LENS_SIGMA[0]), np.full(head - 4, SHARED_LENS_SIGMA[1])]) ** 2
+        self.shared_pose = [(j, index[settings.shared_pose[c.name]])
+                            for j, c in enumerate(cameras)
+                            if settings.shared_pose.get(c.name) in index]
+        self.shared_pose_precision = 1.0 / np.repeat(SHARED_POSE_SIGMA, 3) ** 2
         if self.n_global:
             p = prior.precision
             # H_gg = sum_i p_i A_i^T A_i + I does not depend on the state (A is fixed).
@@ -408,6 +430,9 @@ class _Problem:
         for j, k in self.shared:
             d = self.layout.intrinsic_vector(cams[j]) - self.layout.intrinsic_vector(cams[k])
             total += float(np.sum(self.shared_precision * d ** 2))
+        for j, k in self.shared_pose:
+            e = _pose_difference(cams[j], cams[k])
+            total += float(np.sum(self.shared_pose_precision * e ** 2))
         return total
 
     def normal_equations(self, cams, X, g=None, lin=None):
@@ -458,6 +483,19 @@ class _Problem:
         for j, k in self.shared:
             a, b = np.arange(j * pc, j * pc + len(p)), np.arange(k * pc, k * pc + len(p))
             d = p * (lay.intrinsic_vector(cams[j]) - lay.intrinsic_vector(cams[k]))
+            U[a, a] += p
+            U[b, b] += p
+            U[a, b] -= p
+            U[b, a] -= p
+            g_c[a] += d
+            g_c[b] -= d
+        # A shared pose: p |e|^2 with e = (log(R_j R_k^T), t_j - t_k), whose Jacobian in the
+        # increments (R <- exp(w) R, t <- t + dt) is (I, -I) where the tie holds e near 0.
+        p = self.shared_pose_precision
+        head = pc - 6
+        for j, k in self.shared_pose:
+            a, b = np.arange(j * pc + head, (j + 1) * pc), np.arange(k * pc + head, (k + 1) * pc)
+            d = p * _pose_difference(cams[j], cams[k])
             U[a, a] += p
             U[b, b] += p
             U[a, b] -= p

@@ -176,14 +176,20 @@ class SampleStore:
                 out[name] = out.get(name, 0) + 1
         return out
 
-    def retired_views(self):
-        """Return (camera, epoch) -> its retired observations on samples still held."""
+    def retired_views(self, until_ns=None):
+        """
+        Return (camera, epoch) -> its retired observations on samples still held.
+
+        ``until_ns`` ((camera, epoch) -> ns) counts only those stamped before that time.
+        """
         held = {smp.id for smp in self._samples}
+        until_ns = until_ns or {}
         out = {}
         for tag, smp in self.retired:
             if smp.id in held:
-                for name in smp.observations:
-                    out[(name, tag)] = out.get((name, tag), 0) + 1
+                for name, o in smp.observations.items():
+                    if o.stamp_ns < until_ns.get((name, tag), np.inf):
+                        out[(name, tag)] = out.get((name, tag), 0) + 1
         return out
 
     def clear(self):
@@ -328,7 +334,7 @@ class SampleStore:
 
     # -- solver view ----------------------------------------------------------------------
 
-    def arrays(self, camera_names=None, epochs=None):
+    def arrays(self, camera_names=None, epochs=None, until_ns=None):
         """
         Return :class:`SolverArrays` in sample-id order (point targets: one 3-D point each).
 
@@ -339,7 +345,7 @@ class SampleStore:
         further names to (camera, epoch): that camera's observations retired with that epoch
         tag, as a camera of that name after ``camera_names`` (the camera as it was before a
         change).  Only those on samples still held are included: the points stay the
-        samples'.
+        samples'; with ``until_ns`` (name -> ns) only those stamped before that time.
         """
         names = self.camera_names if camera_names is None else tuple(camera_names)
         epochs = dict(epochs or {})
@@ -349,10 +355,11 @@ class SampleStore:
         old = {}
         if epochs:
             tags = {(cam, int(tag)): name for name, (cam, tag) in epochs.items()}
+            until_ns = until_ns or {}
             for tag, smp in self.retired:
                 for cam, o in smp.observations.items():
                     name = tags.get((cam, tag))
-                    if name is not None:
+                    if name is not None and o.stamp_ns < until_ns.get(name, np.inf):
                         old.setdefault(smp.id, []).append((name, o))
         cam, pidx, uv, tid, nfr, spr, cuv, cspr = [], [], [], [], [], [], [], []
         for i, s in enumerate(samples):

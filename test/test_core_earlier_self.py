@@ -1,8 +1,9 @@
 """
-One lens shared by two cameras (a moved camera and its earlier self) and the test that allows it.
+A changed camera and its earlier self: one lens or one pose shared, and the tests that allow it.
 
-A camera knocked half-way: its views before the knock are camera ``cam1#1`` (the old pose),
-those after it ``cam1`` (the new pose), the lens the same unless ``focal_percent`` changes it.
+A camera knocked (or refocused) half-way: its views before the change are camera ``cam1#1``,
+those after it ``cam1``; the lens the same unless ``focal_percent`` changes it, the pose the
+same unless ``knock``.
 """
 import numpy as np
 import pytest
@@ -10,18 +11,19 @@ import pytest
 from armcal_ros.core.adjustment import _Problem, adjust, Observations, SolverSettings
 from armcal_ros.core.calibration import calibrate
 from armcal_ros.core.priors import PointPrior, PriorSettings
-from armcal_ros.core.shared_lens import lens_test
+from armcal_ros.core.earlier_self import lens_test, pose_test
 from armcal_ros.sim.synthetic import make_problem
 
 
-def _knocked(pixel_sigma, seed=3, focal_percent=0.0):
+def _knocked(pixel_sigma, seed=3, focal_percent=0.0, knock=True):
     """Return (specs, points, obs, true cameras): cam1 knocked by 1 deg and 5 mm half-way."""
     prob = make_problem(200, seed, bias_sigma=0.0, pixel_sigma=0.0)
     cams = [c.copy() for c in prob.cameras]
     old = cams[0].copy()
     old.name = 'cam1#1'
     new = cams[0]
-    new.apply_pose_increment(np.radians([0.6, -0.5, 0.5]), np.array([0.003, -0.002, 0.003]))
+    if knock:
+        new.apply_pose_increment(np.radians([0.6, -0.5, 0.5]), np.array([0.003, -0.002, 0.003]))
     new.set_intrinsics(new.intrinsics() * np.array([1 + focal_percent / 100] * 2 + [1, 1]))
     cams.append(old)
     rng = np.random.default_rng(seed)
@@ -45,16 +47,22 @@ def _knocked(pixel_sigma, seed=3, focal_percent=0.0):
     return specs, X, obs, cams
 
 
-def test_two_epochs_of_one_lens_are_recovered_exactly_from_noise_free_views():
-    specs, X, obs, truth = _knocked(0.0)
-    s = SolverSettings(pixel_sigma=0.3, distortion_sigma=None, shared_lens={'cam1#1': 'cam1'})
-    res = calibrate(specs, X, obs, PriorSettings('fixed'), s)
+def _recovers_exactly(specs, X, obs, truth, settings):
+    """Calibrate noise-free views; assert every camera is its truth; return the result."""
+    res = calibrate(specs, X, obs, PriorSettings('fixed'), settings)
     assert res.success, res.message
     for cam in truth:
         got = res.cameras[cam.name]
         assert np.allclose(got.intrinsics(), cam.intrinsics(), rtol=1e-6)
         assert np.allclose(got.center, cam.center, atol=1e-7)
         assert np.allclose(got.rotation, cam.rotation, atol=1e-8)
+    return res
+
+
+def test_two_epochs_of_one_lens_are_recovered_exactly_from_noise_free_views():
+    specs, X, obs, truth = _knocked(0.0)
+    s = SolverSettings(pixel_sigma=0.3, distortion_sigma=None, shared_lens={'cam1#1': 'cam1'})
+    _recovers_exactly(specs, X, obs, truth, s)
 
 
 def test_the_shared_lens_terms_gradient_is_half_the_costs():
@@ -105,6 +113,51 @@ def test_a_lens_test_or_a_shared_lens_with_wrong_names_is_refused_by_name():
         lens_test(adj, 'cam9', 'cam1')
     with pytest.raises(ValueError, match='alpha'):
         lens_test(adj, 'cam1#1', 'cam1', alpha=0.0)
+    with pytest.raises(ValueError, match="'cam9'"):
+        pose_test(adj, 'cam1#1', 'cam9')
     for bad in ({'cam1': 'cam1'}, {'cam1': 3}):
         with pytest.raises(ValueError, match='shared_lens'):
             SolverSettings(shared_lens=bad).validate()
+        with pytest.raises(ValueError, match='shared_pose'):
+            SolverSettings(shared_pose=bad).validate()
+
+
+def test_two_epochs_of_one_pose_are_recovered_exactly_from_noise_free_views():
+    specs, X, obs, truth = _knocked(0.0, focal_percent=2.0, knock=False)
+    s = SolverSettings(pixel_sigma=0.3, distortion_sigma=None, shared_pose={'cam1#1': 'cam1'})
+    res = _recovers_exactly(specs, X, obs, truth, s)
+    assert not np.allclose(res.cameras['cam1'].intrinsics(), res.cameras['cam1#1'].intrinsics())
+
+
+def test_the_shared_pose_terms_gradient_is_half_the_costs():
+    """g_c's pose entries (J^T W r plus the shared-pose term) against central differences."""
+    specs, X, obs, truth = _knocked(0.2, focal_percent=2.0, knock=False)
+    cams = [c.copy() for c in truth]
+    cams[-1].apply_pose_increment(np.radians([0.05, -0.03, 0.02]), [0.001, -0.002, 0.0005])
+    s = SolverSettings(pixel_sigma=0.3, loss='none', distortion_sigma=None,
+                       shared_pose={'cam1#1': 'cam1'}).validate()
+    prob = _Problem(cams, X, obs, PointPrior(X, PriorSettings('fixed')), s,
+                    np.ones(len(obs), bool))
+    _, g_c, *_ = prob.normal_equations(cams, X)
+    pc = prob.layout.per_camera
+    for j in (0, len(cams) - 1):
+        for k in range(6):
+            def cost(delta, j=j, k=k):
+                moved = [c.copy() for c in cams]
+                step = np.zeros(6)
+                step[k] = delta
+                moved[j].apply_pose_increment(step[:3], step[3:])
+                return prob.cost(moved, X)
+            h = 1e-7
+            fd = (cost(h) - cost(-h)) / (2 * h)
+            assert g_c[j * pc + pc - 6 + k] == pytest.approx(fd / 2, rel=1e-4), (j, k)
+
+
+def test_the_pose_test_keeps_one_pose_through_a_refocus_and_parts_a_knocked_one():
+    s = SolverSettings(pixel_sigma=0.05)
+    specs, X, obs, truth = _knocked(0.05, focal_percent=1.0, knock=False)
+    same = pose_test(adjust(truth, X, obs, PriorSettings('fixed'), s), 'cam1#1', 'cam1')
+    assert same.same and same.dof == 6 and same.wald < same.wald_limit, same.message
+    specs, X, obs, truth = _knocked(0.05, focal_percent=1.0)
+    parted = pose_test(adjust(truth, X, obs, PriorSettings('fixed'), s), 'cam1#1', 'cam1')
+    assert not parted.same and parted.rotation_deg > 0.5, parted.message
