@@ -424,7 +424,7 @@ class CalibrationEngine:
         #: ('lens' after a move, 'pose' after a lens change), and -> the last test's verdict.
         self._epoch_warm: Dict[str, object] = {}
         self._epoch_share: Dict[str, str] = {}
-        self._epoch_until: Dict[str, int] = {}
+        self._epoch_until: Dict[Tuple[str, int], int] = {}
         self.epoch_verdicts: Dict[str, str] = {}
 
     @property
@@ -678,8 +678,7 @@ class CalibrationEngine:
         epochs = epochs or {}
         names = list(self.settings.camera_names)
         arrays = self.store.arrays(camera_names=names, epochs=epochs,
-                                   until_ns={k: v for k, v in self._epoch_until.items()
-                                             if k in epochs})
+                                   until_ns=self._epoch_until)
         lit = None
         if self.settings.pool_light_shift:
             fitted = set(self._fitted_centres) | {e for e, (c, _) in epochs.items()
@@ -715,8 +714,8 @@ class CalibrationEngine:
         """
         if not self.settings.solve_earlier_epochs or not self.changes.records:
             return {}
-        until = self._epoch_limits()
-        views = self.store.retired_views(until)
+        self._epoch_until = self._epoch_limits()
+        views = self.store.retired_views(self._epoch_until)
         out, share = {}, {}
         for rec in self.changes.records:
             if rec.kind == 'camera' and rec.what in ('pose', 'lens') and \
@@ -726,7 +725,6 @@ class CalibrationEngine:
                 out[name] = (rec.camera, rec.epoch)
                 share[name] = 'lens' if rec.what == 'pose' else 'pose'
         self._epoch_share = share
-        self._epoch_until = {earlier_self(*k): v for k, v in until.items()}
         return out
 
     def _epoch_limits(self):

@@ -458,7 +458,7 @@ def test_a_refocused_cameras_earlier_views_sharing_its_pose_recalibrate_it_bette
 
 def test_views_after_a_reported_disagreement_are_kept_from_the_earlier_self():
     from armcal_ros.change_tracking import ChangeRecord
-    sim, samples, eng = _cell_session('ur5-2cam', 'geometric', 0)
+    eng = CalibrationEngine(EngineSettings(['left', 'right'], PriorSettings('fixed')))
 
     def record(kind, camera, onset, epoch=0):
         return ChangeRecord(kind, camera, epoch, onset, onset + 10, 0.0, 1.0, 0)

@@ -259,7 +259,7 @@ def test_a_moved_cameras_retired_views_return_as_its_earlier_self_on_the_points_
     # Views from a time on (a disagreement reported before the change was declared) left out.
     assert store.retired_views(until_ns={('cam2', 1): 150}) == {('cam2', 1): 2}
     cut = store.arrays(['cam1', 'cam2'], epochs={'cam2#1': ('cam2', 1)},
-                       until_ns={'cam2#1': 150})
+                       until_ns={('cam2', 1): 150})
     np.testing.assert_allclose(cut.uv[cut.camera_index == 2, 0], [0.0, 10.0])
     back = arrays.without_cameras(['cam2#1'])
     plain = store.arrays(['cam1', 'cam2'])

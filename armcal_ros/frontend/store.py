@@ -345,7 +345,8 @@ class SampleStore:
         further names to (camera, epoch): that camera's observations retired with that epoch
         tag, as a camera of that name after ``camera_names`` (the camera as it was before a
         change).  Only those on samples still held are included: the points stay the
-        samples'; with ``until_ns`` (name -> ns) only those stamped before that time.
+        samples'; with ``until_ns`` ((camera, epoch) -> ns, as :meth:`retired_views`) only
+        those stamped before that time.
         """
         names = self.camera_names if camera_names is None else tuple(camera_names)
         epochs = dict(epochs or {})
@@ -359,7 +360,7 @@ class SampleStore:
             for tag, smp in self.retired:
                 for cam, o in smp.observations.items():
                     name = tags.get((cam, tag))
-                    if name is not None and o.stamp_ns < until_ns.get(name, np.inf):
+                    if name is not None and o.stamp_ns < until_ns.get((cam, tag), np.inf):
                         old.setdefault(smp.id, []).append((name, o))
         cam, pidx, uv, tid, nfr, spr, cuv, cspr = [], [], [], [], [], [], [], []
         for i, s in enumerate(samples):
