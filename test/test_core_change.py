@@ -654,6 +654,35 @@ def test_a_camera_is_not_named_while_another_that_would_explain_it_is_untried(mo
     assert kind == 'unexplained' and evidence['ambiguous'] == 1.0
 
 
+@pytest.mark.parametrize('which', [0, 1])
+def test_of_two_cameras_the_one_whose_exclusion_agrees_clearly_better_is_named(which):
+    """
+    Two cameras and a loosely known arm: either refit explains a refocus, the F test does not.
+
+    The arm is taken to 3 mm (three times its true error), so each camera alone agrees with
+    it and a new pose of either camera absorbs 10 views of a 2 % refocus; leaving out the
+    refocused camera leaves views that agree far better than leaving out the other.
+    """
+    cams, X, measured, uvs = _stream(200, 12)
+    a, b = cams[0].name, cams[1].name
+    model = PredictionModel({c.name: c for c in cams[:2]}, {a: PIXEL_SIGMA, b: PIXEL_SIGMA},
+                            3 * ARM_SIGMA)
+    mon = ChangeMonitor(model, {a: 1.0, b: 1.0})
+    changed = cams[which].copy()
+    changed.fx, changed.fy = 1.02 * changed.fx, 1.02 * changed.fy
+    rng = np.random.default_rng(5)
+    seen = []
+    for k in [k for k, o in enumerate(uvs) if a in o and b in o][:10]:
+        obs = {n: uvs[k][n] for n in (a, b)}
+        obs[changed.name] = changed.project(X[k:k + 1])[0] + rng.normal(0, PIXEL_SIGMA, 2)
+        seen.append(View(k, measured[k], obs))
+    kind, camera, evidence = mon._attribute(seen, a)
+    assert evidence[f'without {a}'] <= 1.0 and evidence[f'without {b}'] <= 1.0
+    assert evidence[f'refit {a}'] <= 1.0 and evidence[f'refit {b}'] <= 1.0
+    assert kind == 'camera' and camera == changed.name
+    assert evidence['agreement without it, F against the next'] > 5.0
+
+
 def _tracked(tracker, X, measured, uvs, knock_from, knocked, rng, offer=None):
     """Feed samples to a ChangeTracker (the knocked camera's views from ``knock_from`` on)."""
     from armcal_ros.frontend.samples import Observation, Sample

@@ -70,6 +70,11 @@ camera's CUSUM starts again.  Otherwise they are explained in turn:
   predict each other loosely, view by view; a weak disagreement spread over several cameras),
   each of those cameras is refitted as one rigid change across its views, and if exactly one
   refit explains them, every other having been refitted (enough views), it is that camera;
+- failing that (a new pose of either of two cameras absorbs a few views alike), if leaving one
+  camera out agrees clearly better than leaving out any other - the ratio of their chi^2 per
+  degree of freedom beyond its F quantile at CONFIRM_ALPHA - and its refit explains its
+  views, it is that camera: the views of the camera that changed disagree with the arm, those
+  of the others do not;
 - otherwise the change is reported as unexplained, against the camera whose window fired.
 An unexplained climb is judged again at the next view while there are too few views to tell
 (fewer than CONFIRM_OBSERVATIONS + ONSET_SLACK, or two cameras that both explain them, up to
@@ -1118,6 +1123,13 @@ class ChangeMonitor:
 
     def _agreement(self, seen: List[View], leave_out=None, use_arm=True, alpha=None):
         """chi^2 / its quantile at the false-alarm probability, over ``seen`` (nan: untestable)."""
+        total, dof = self._chi2(seen, leave_out, use_arm)
+        if dof == 0:
+            return float('nan')
+        return total / float(chi2.isf(alpha or self.settings.false_alarm, dof))
+
+    def _chi2(self, seen: List[View], leave_out=None, use_arm=True):
+        """(chi^2, dof) of the arm and the cameras but ``leave_out`` agreeing over ``seen``."""
         total, dof, scales = 0.0, 0, self.current_scales()
         for s in seen:
             uvs = {n: uv for n, uv in s.uvs.items() if n != leave_out}
@@ -1127,9 +1139,40 @@ class ChangeMonitor:
                 continue
             total += got[0]
             dof += got[1]
-        if dof == 0:
-            return float('nan')
-        return total / float(chi2.isf(alpha or self.settings.false_alarm, dof))
+        return total, dof
+
+    def _clearly_best(self, seen: List[View], candidates):
+        """
+        Return (camera, F) if leaving one camera out agrees clearly better than any other, or None.
+
+        Two cameras and an arm known to millimetres each agree with the arm alone, view by
+        view, whichever of them changed, and each one's refit explains its views: a new pose
+        of either camera absorbs a few views.  But leaving out the camera that changed leaves
+        views that agree; leaving out the other leaves the changed camera's views against the
+        arm.  With chi^2_n the agreement without camera n over d_n degrees of freedom, the
+        camera b of least chi^2_b / d_b is named if every other o has
+
+            F = (chi^2_o / d_o) / (chi^2_b / d_b) > F^-1(1 - alpha; d_o, d_b),
+
+        alpha = :data:`CONFIRM_ALPHA`: with nothing changed (or b changed) the ratio is at most
+        that of two chi^2 variables (positively correlated through the arm's points they
+        share, which narrows it), and a scale common to both (an arm's error over- or
+        under-stated) cancels.  The camera is then confirmed as any other (its views must
+        disagree with its old calibration at the false-alarm rate).
+        """
+        sums = {n: self._chi2(seen, leave_out=n) for n in candidates}
+        sums = {n: v for n, v in sums.items() if v[1] > 0}
+        if len(sums) < 2:
+            return None
+        best = min(sums, key=lambda n: sums[n][0] / sums[n][1])
+        cb, db = sums[best]
+        if cb <= 0:
+            return None
+        ratios = [((c / d) / (cb / db), float(f_dist.isf(CONFIRM_ALPHA, d, db)))
+                  for n, (c, d) in sums.items() if n != best]
+        if all(f > needed for f, needed in ratios):
+            return best, min(f for f, _ in ratios)
+        return None
 
     def _attribute(self, seen: List[View], fired: str):
         """
@@ -1140,8 +1183,9 @@ class ChangeMonitor:
         A camera is named only if leaving it out explains the views and leaving out any other
         does not: when several exclusions explain them, the disagreement is too weak to point
         anywhere (an arm error a little beyond its model, views of several cameras a little
-        off) unless exactly one of those cameras' refits explains it; otherwise it is
-        'unexplained'.
+        off) unless exactly one of those cameras' refits explains it, or leaving one of them
+        out agrees clearly better than leaving out any other (:meth:`_clearly_best`);
+        otherwise it is 'unexplained'.
         With one camera there is nothing to compare it with: it is the suspect, and the refit
         decides.
         """
@@ -1179,6 +1223,11 @@ class ChangeMonitor:
             untried = [n for n in ok if np.isnan(evidence[f'refit {n}'])]
             if len(explained) == 1 and not untried:
                 return 'camera', explained[0], evidence
+            clear = self._clearly_best(seen, ok)
+            if clear is not None:
+                evidence['agreement without it, F against the next'] = clear[1]
+                if clear[0] in explained:
+                    return 'camera', clear[0], evidence
             evidence['ambiguous'] = float(len(explained) + len(untried) > 1)
         free = evidence['cameras without the arm']
         if not ok and np.isfinite(free) and free <= 1.0:
