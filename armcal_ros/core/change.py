@@ -1223,7 +1223,11 @@ class ChangeMonitor:
             untried = [n for n in ok if np.isnan(evidence[f'refit {n}'])]
             if len(explained) == 1 and not untried:
                 return 'camera', explained[0], evidence
-            clear = self._clearly_best(seen, ok)
+            # Only where the cameras disagree among themselves: a change of the arm or marker
+            # along one camera's rays leaves that camera agreeing with the arm and the others
+            # not, as a change of those others would, but the cameras agree without the arm.
+            free = evidence['cameras without the arm']
+            clear = self._clearly_best(seen, ok) if np.isfinite(free) and free > 1.0 else None
             if clear is not None:
                 evidence['agreement without it, F against the next'] = clear[1]
                 if clear[0] in explained:
