@@ -70,11 +70,11 @@ camera's CUSUM starts again.  Otherwise they are explained in turn:
   predict each other loosely, view by view; a weak disagreement spread over several cameras),
   each of those cameras is refitted as one rigid change across its views, and if exactly one
   refit explains them, every other having been refitted (enough views), it is that camera;
-- failing that (a new pose of either of two cameras absorbs a few views alike), if leaving one
-  camera out agrees clearly better than leaving out any other - the ratio of their chi^2 per
-  degree of freedom beyond its F quantile at CONFIRM_ALPHA - and its refit explains its
-  views, it is that camera: the views of the camera that changed disagree with the arm, those
-  of the others do not;
+- failing that, with two cameras that disagree with each other (a new pose of either absorbs
+  a few views alike), if leaving one out agrees clearly better than leaving out the other -
+  the ratio of their chi^2 per degree of freedom beyond its F quantile at CONFIRM_ALPHA - and
+  its refit explains its views, it is that camera: the views of the camera that changed
+  disagree with the arm, the other's do not;
 - otherwise the change is reported as unexplained, against the camera whose window fired.
 An unexplained climb is judged again at the next view while there are too few views to tell
 (fewer than CONFIRM_OBSERVATIONS + ONSET_SLACK, or two cameras that both explain them, up to
@@ -1145,12 +1145,13 @@ class ChangeMonitor:
         """
         Return (camera, F) if leaving one camera out agrees clearly better than any other, or None.
 
-        Two cameras and an arm known to millimetres each agree with the arm alone, view by
-        view, whichever of them changed, and each one's refit explains its views: a new pose
-        of either camera absorbs a few views.  But leaving out the camera that changed leaves
-        views that agree; leaving out the other leaves the changed camera's views against the
-        arm.  With chi^2_n the agreement without camera n over d_n degrees of freedom, the
-        camera b of least chi^2_b / d_b is named if every other o has
+        Asked of two cameras (:meth:`_attribute`).  Two cameras and an arm known to
+        millimetres each agree with the arm alone, view by view, whichever of them changed,
+        and each one's refit explains its views: a new pose of either camera absorbs a few
+        views.  But leaving out the camera that changed leaves views that agree; leaving out
+        the other leaves the changed camera's views against the arm.  With chi^2_n the
+        agreement without camera n over d_n degrees of freedom, the camera b of least
+        chi^2_b / d_b is named if every other o has
 
             F = (chi^2_o / d_o) / (chi^2_b / d_b) > F^-1(1 - alpha; d_o, d_b),
 
@@ -1183,8 +1184,8 @@ class ChangeMonitor:
         A camera is named only if leaving it out explains the views and leaving out any other
         does not: when several exclusions explain them, the disagreement is too weak to point
         anywhere (an arm error a little beyond its model, views of several cameras a little
-        off) unless exactly one of those cameras' refits explains it, or leaving one of them
-        out agrees clearly better than leaving out any other (:meth:`_clearly_best`);
+        off) unless exactly one of those cameras' refits explains it, or, of two cameras, leaving
+        one out agrees clearly better than leaving out the other (:meth:`_clearly_best`);
         otherwise it is 'unexplained'.
         With one camera there is nothing to compare it with: it is the suspect, and the refit
         decides.
@@ -1223,11 +1224,16 @@ class ChangeMonitor:
             untried = [n for n in ok if np.isnan(evidence[f'refit {n}'])]
             if len(explained) == 1 and not untried:
                 return 'camera', explained[0], evidence
-            # Only where the cameras disagree among themselves: a change of the arm or marker
-            # along one camera's rays leaves that camera agreeing with the arm and the others
-            # not, as a change of those others would, but the cameras agree without the arm.
+            # Only between two cameras, and only where they disagree with each other.  With
+            # three or more, every exclusion leaves cameras that place the point without the
+            # arm, and several exclusions agreeing is a weak disagreement spread over them (on
+            # a lamp-lit cluttered three-camera recording this test named a camera at two
+            # such places: false changes).  And a change of the arm or marker along one
+            # camera's rays leaves that camera agreeing with the arm and the other not, as a
+            # change of the other would, but the two cameras agree without the arm.
             free = evidence['cameras without the arm']
-            clear = self._clearly_best(seen, ok) if np.isfinite(free) and free > 1.0 else None
+            clear = (self._clearly_best(seen, ok)
+                     if len(cams) == 2 and np.isfinite(free) and free > 1.0 else None)
             if clear is not None:
                 evidence['agreement without it, F against the next'] = clear[1]
                 if clear[0] in explained:
