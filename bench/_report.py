@@ -18,10 +18,22 @@ def table(headers, rows):
     return '\n'.join(out)
 
 
+#: The libraries whose versions can move a figure (requirements.txt pins none of them): the
+#: rendering and detection (OpenCV), every array and solve (numpy, scipy).
+VERSIONED = ('numpy', 'scipy', 'opencv-python-headless')
+
+
 def machine():
-    """Return a one-line description of where the numbers were measured."""
-    return (f'{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, '
-            f'{time.strftime("%Y-%m-%d")}')
+    """Return one line saying where, and with which libraries, the numbers were measured."""
+    from importlib.metadata import PackageNotFoundError, version
+    libs = []
+    for name in VERSIONED:
+        try:
+            libs.append(f'{name} {version(name)}')
+        except PackageNotFoundError:
+            pass
+    return (f'{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}'
+            + ''.join(f', {lib}' for lib in libs) + f', {time.strftime("%Y-%m-%d")}')
 
 
 def write_section(name, markdown):
