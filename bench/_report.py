@@ -4,6 +4,7 @@ import os
 import platform
 import re
 import time
+from importlib.metadata import PackageNotFoundError, version
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BENCH_MD = os.path.join(ROOT, 'docs', 'BENCHMARKS.md')
@@ -25,7 +26,6 @@ VERSIONED = ('numpy', 'scipy', 'opencv-python-headless')
 
 def machine():
     """Return one line saying where, and with which libraries, the numbers were measured."""
-    from importlib.metadata import PackageNotFoundError, version
     libs = []
     for name in VERSIONED:
         try:

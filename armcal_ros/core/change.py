@@ -1195,7 +1195,7 @@ class ChangeMonitor:
         if np.isfinite(evidence['all']) and evidence['all'] <= 1.0:
             return None, None, evidence
         evidence.update({f'without {n}': self._agreement(seen, leave_out=n) for n in cams})
-        evidence['cameras without the arm'] = self._agreement(seen, use_arm=False)
+        free = evidence['cameras without the arm'] = self._agreement(seen, use_arm=False)
         if len(cams) == 1:
             return 'camera', cams[0], evidence
         testable = {n: evidence[f'without {n}'] for n in cams
@@ -1226,12 +1226,11 @@ class ChangeMonitor:
                 return 'camera', explained[0], evidence
             # Only between two cameras, and only where they disagree with each other.  With
             # three or more, every exclusion leaves cameras that place the point without the
-            # arm, and several exclusions agreeing is a weak disagreement spread over them (on
-            # a lamp-lit cluttered three-camera recording this test named a camera at two
-            # such places: false changes).  And a change of the arm or marker along one
-            # camera's rays leaves that camera agreeing with the arm and the other not, as a
-            # change of the other would, but the two cameras agree without the arm.
-            free = evidence['cameras without the arm']
+            # arm, and several exclusions agreeing is a weak disagreement spread over them (a
+            # likelihood-ratio choice among them named cameras falsely, docs/ARCHITECTURE.md).
+            # And a change of the arm or marker along one camera's rays leaves that camera
+            # agreeing with the arm and the other not, as a change of the other would, but
+            # the two cameras agree without the arm.
             clear = (self._clearly_best(seen, ok)
                      if len(cams) == 2 and np.isfinite(free) and free > 1.0 else None)
             if clear is not None:
@@ -1239,7 +1238,6 @@ class ChangeMonitor:
                 if clear[0] in explained:
                     return 'camera', clear[0], evidence
             evidence['ambiguous'] = float(len(explained) + len(untried) > 1)
-        free = evidence['cameras without the arm']
         if not ok and np.isfinite(free) and free <= 1.0:
             return 'arm', None, evidence
         return 'unexplained', fired, evidence
