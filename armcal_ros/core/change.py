@@ -501,7 +501,8 @@ def _fuse_batch(model: PredictionModel, X0, uv, seen, scales=None, use_arm=True,
     return X, cov, chi, ok
 
 
-def _innovation_batch(model: PredictionModel, left, X0, uv, seen, extra=None, arm_design=None):
+def _innovation_batch(model: PredictionModel, left, X0, uv, seen, extra=None, arm_design=None,
+                      gradient=False):
     """
     Return camera ``left``'s leave-one-out innovations over N samples: r (N, 2), S (N, 2, 2), d^2.
 
@@ -523,8 +524,11 @@ def _innovation_batch(model: PredictionModel, left, X0, uv, seen, extra=None, ar
     moves with its model's parameters g when the joint covariance has them (:data:`ARM`)
     and ``arm_design`` (N, 3, G) gives each view's A: dX~/dg = H^-1 A / s_arm^2, so
     g_arm = -J_c H^-1 A / s_arm^2.
+    With ``gradient`` g (N, 2, P) is returned too, as a fourth value (None without a joint
+    covariance).
     """
     joint = model.joint_covariance
+    g = None
     extra = extra or {}
     others = {n: m for n, m in seen.items() if n != left}
     X, cov, _, ok = _fuse_batch(model, X0, {n: uv[n] for n in others}, others,
@@ -560,6 +564,8 @@ def _innovation_batch(model: PredictionModel, left, X0, uv, seen, extra=None, ar
             S = S + np.einsum('nap,pq,nbq->nab', g, np.asarray(C, float), g)
         d2 = np.einsum('na,nab,nb->n', r, _inv2(S), r)
     d2[~ok | ~(depth > 0) | ~np.isfinite(d2)] = np.nan
+    if gradient:
+        return r, S, d2, g
     return r, S, d2
 
 
@@ -583,6 +589,69 @@ def innovation(model: PredictionModel, X0, uvs: Dict[str, np.ndarray], camera, e
     if not np.isfinite(d2[0]):
         return None
     return r[0], S[0], float(d2[0])
+
+
+def joint_disagreement(model: PredictionModel, views, camera, scale=1.0, leave_worst=True):
+    """
+    Return (chi^2, dof) of ``camera``'s innovations over ``views`` taken together, or None.
+
+    Each view's innovation r_i (:func:`_innovation_batch`) has covariance
+    S_i = D_i + g_i C g_i^T, D_i what the image noise and the fused point put in, g_i C g_i^T
+    what the calibration's parameter covariance C does.  The calibration's error is one error,
+    common to every view: stacked, r = (r_1 .. r_n) has covariance
+
+        Sigma = blockdiag(D_i) + G C G^T,   G = (g_1; ..; g_n),
+        chi^2 = r^T Sigma^-1 r / ``scale``   (2 n degrees of freedom),
+
+    where a sum of the d_i^2 counts a shift the calibration allows once per view (a young
+    calibration, or one fitted to a few views a little off, predicts a whole region alike and
+    a little wrong).  With ``leave_worst`` the view of largest d_i^2 is left out (2 n - 2):
+    the disagreement must not rest on one view, as the CUSUM, which counts no view beyond its
+    cap, does not (a lone detection pulled by clutter touching the marker).  Without a joint
+    covariance the views are taken as independent (Sigma block-diagonal).  None with fewer
+    than two views that can be predicted.
+    """
+    r, D, G, d2 = [], [], [], []
+    C = None if model.joint_covariance is None else np.asarray(model.joint_covariance[1],
+                                                               float)
+    for v in views:
+        if camera not in v.uvs or camera not in model.cameras:
+            continue
+        names = [n for n in v.uvs if n in model.cameras]
+        got = _innovation_batch(
+            model, camera, np.asarray(v.X0, float).reshape(1, 3),
+            {n: np.asarray(v.uvs[n], float).reshape(1, 2) for n in names},
+            {n: np.ones(1, bool) for n in names}, _batch_extra(v.extra, 1),
+            None if v.arm_design is None else np.asarray(v.arm_design, float)[None],
+            gradient=True)
+        if not np.isfinite(got[2][0]):
+            continue
+        r.append(got[0][0])
+        d2.append(got[2][0])
+        if got[3] is None or C is None:
+            D.append(got[1][0])
+            G.append(None)
+        else:
+            D.append(got[1][0] - got[3][0] @ C @ got[3][0].T)
+            G.append(got[3][0])
+    if leave_worst and len(r) > 2:
+        worst = int(np.argmax(d2))
+        r, D, G = (x[:worst] + x[worst + 1:] for x in (r, D, G))
+    n = len(r)
+    if n < 2:
+        return None
+    Sigma = np.zeros((2 * n, 2 * n))
+    for i, Di in enumerate(D):
+        Sigma[2 * i:2 * i + 2, 2 * i:2 * i + 2] = Di
+    if all(g is not None for g in G):
+        Gs = np.concatenate(G, axis=0)
+        Sigma += Gs @ C @ Gs.T
+    rs = np.concatenate(r)
+    try:
+        total = float(rs @ np.linalg.solve(Sigma, rs)) / scale
+    except np.linalg.LinAlgError:
+        return None
+    return total, 2 * n
 
 
 def statistics(model: PredictionModel, X0, uvs: Dict[str, np.ndarray],
@@ -1075,13 +1144,13 @@ class ChangeMonitor:
         if fit.explains:
             # A refit explains views that did not move as well as views that did: the
             # views from the change point on must also disagree with the old camera, as the
-            # test itself sees them (d^2 / k^2 with the joint covariance), at the false-alarm
-            # rate.  Otherwise the climb was a disagreement too weak to be a change.
-            got = [innovation(self.model, v.X0, v.uvs, camera, v.extra, v.arm_design)
-                   for v in sus['seen']]
-            d2 = np.array([g[2] for g in got if g is not None]) / self.scale(camera)
-            quantile = float(chi2.isf(self.settings.false_alarm, 2 * max(1, d2.size)))
-            if d2.size and float(np.sum(d2)) <= quantile:
+            # test itself sees them (k^2 and the joint covariance) but taken together, the
+            # calibration's error being common to them, and not on one view alone
+            # (joint_disagreement), at the false-alarm rate.  Otherwise the climb was a
+            # disagreement too weak to be a change.
+            got = joint_disagreement(self.model, sus['seen'], camera, self.scale(camera))
+            if got is not None and got[0] <= float(chi2.isf(self.settings.false_alarm,
+                                                            got[1])):
                 self.suspect = None
                 self._start_again(camera)
                 return None
