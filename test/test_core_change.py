@@ -13,7 +13,8 @@ from scipy.spatial.transform import Rotation
 from armcal_ros.core.change import (agreement, ARM, cap_of, CONFIRM_OBSERVATIONS,
                                     MAX_SUSPECT_VIEWS,
                                     ChangeMonitor, ChangeSettings, fuse,
-                                    innovation, PredictionModel, reference_scales,
+                                    innovation, joint_disagreement, PredictionModel,
+                                    reference_scales,
                                     _rises_later,
                                     size_change, statistics, statistics_batch, threshold, View)
 from armcal_ros.sim.synthetic import make_problem
@@ -555,6 +556,53 @@ def test_a_suspect_is_declared_changed_only_if_its_views_disagree_with_the_old_c
     else:
         assert event is None and mon.suspect is None and mon.unconfirmed == 1
         assert cam.name in mon.model.cameras
+
+
+def _views_seen_by_all(cams, measured, uvs, n):
+    return [View(i, measured[i], uvs[i]) for i in range(len(uvs)) if len(uvs[i]) == 3][:n]
+
+
+def test_the_views_disagreement_without_a_joint_covariance_is_the_sum_of_their_d2():
+    """Known solution: independent views, none left out: chi^2 = sum d_i^2 over 2 n."""
+    cams, _, measured, uvs = _stream(60, 8)
+    views = _views_seen_by_all(cams, measured, uvs, 10)
+    model = _model(cams)
+    total, dof = joint_disagreement(model, views, cams[0].name, scale=2.0, leave_worst=False)
+    d2 = [innovation(model, v.X0, v.uvs, cams[0].name)[2] for v in views]
+    assert dof == 2 * len(views)
+    assert total == pytest.approx(sum(d2) / 2.0, rel=1e-9)
+
+
+def test_the_views_disagreement_counts_the_calibrations_error_once_not_once_per_view():
+    """
+    A calibration 3 sigma off (as one in 400 are) shifts a region's views alike.
+
+    Its covariance allows the shift; counted once per view (the sum of d_i^2) it reads as
+    a disagreement far beyond the false-alarm quantile, taken together it does not.  A lone
+    view 5 px off is left out: the disagreement does not rest on it.
+    """
+    from scipy.stats import chi2
+    cams, _, measured, uvs = _stream(80, 9)
+    names = [(c.name, p) for c in cams for p in _PARAMS]
+    scale = {'fx': 3.0, 'fy': 3.0, 'cx': 2.0, 'cy': 2.0, 'k1': 1e-3, 'k2': 1e-3,
+             'tx': 1e-3, 'ty': 1e-3, 'tz': 1e-3}
+    v = np.array([scale.get(p, 1e-3) for _, p in names]) * \
+        np.random.default_rng(9).normal(size=len(names))
+    off = _perturbed(cams, names, 3.0 * v)
+    model = PredictionModel({c.name: c for c in off}, {c.name: PIXEL_SIGMA for c in off},
+                            ARM_SIGMA, {}, (names, np.outer(v, v)))
+    cam = cams[0].name
+    views = _views_seen_by_all(cams, measured, uvs, 12)
+    quantile = chi2.isf(1e-6, 2 * len(views))
+    summed = sum(innovation(model, x.X0, x.uvs, cam)[2] for x in views)
+    total, dof = joint_disagreement(model, views, cam, leave_worst=False)
+    assert summed > quantile, (summed, total, quantile)
+    assert total < chi2.isf(1e-3, dof), (summed, total, quantile)
+    bad = View(-1, views[0].X0, dict(views[0].uvs))
+    bad.uvs[cam] = bad.uvs[cam] + 5.0
+    with_bad = joint_disagreement(model, [bad] + views[1:], cam)
+    assert with_bad == pytest.approx(joint_disagreement(model, views[1:], cam,
+                                                        leave_worst=False))
 
 
 def test_a_step_up_in_the_old_misfits_is_told_from_their_scatter():
