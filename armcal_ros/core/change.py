@@ -1154,6 +1154,14 @@ class ChangeMonitor:
             got = joint_disagreement(self.model, sus['seen'], camera, self.scale(camera))
             if got is not None and got[0] <= float(chi2.isf(self.settings.false_alarm,
                                                             got[1])):
+                latest = fit.old_d2[-CONFIRM_OBSERVATIONS:]
+                if len(sus['seen']) < MAX_SUSPECT_VIEWS and float(np.sum(latest)) > float(
+                        chi2.isf(self.settings.false_alarm, 2 * len(latest))):
+                    # Too little yet, taken together, while the latest views still
+                    # disagree one by one: a small change (a 0.5 % refocus near the
+                    # image centre) shows over more views, and the suspect keeps its
+                    # change point rather than a new climb's, views later.
+                    return None
                 self.suspect = None
                 self._start_again(camera)
                 return None
