@@ -78,7 +78,9 @@ camera's CUSUM starts again.  Otherwise they are explained in turn:
 - otherwise the change is reported as unexplained, against the camera whose window fired.
 A suspect camera is declared changed only if its views from the change point on disagree
 with its old calibration taken together - the calibration's error is one error common to them
-- and not on one view alone (:func:`joint_disagreement`), and a refit explains them.
+- and not on one view alone (:func:`joint_disagreement`), and a refit explains them; short of
+that it waits, up to :data:`MAX_SUSPECT_VIEWS`, while its latest views still disagree one by
+one.
 An unexplained climb is judged again at the next view while there are too few views to tell
 (fewer than CONFIRM_OBSERVATIONS + ONSET_SLACK, or two cameras that both explain them, up to
 :data:`MAX_SUSPECT_VIEWS`), and a suspect camera whose views no refit explains yet keeps
