@@ -9,6 +9,7 @@ The cameras and points come from :mod:`armcal_ros.sim.synthetic` (arm errors 1 m
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
 
 from armcal_ros.core.change import (agreement, ARM, cap_of, CONFIRM_OBSERVATIONS,
                                     MAX_SUSPECT_VIEWS,
@@ -581,7 +582,6 @@ def test_the_views_disagreement_counts_the_calibrations_error_once_not_once_per_
     a disagreement far beyond the false-alarm quantile, taken together it does not.  A lone
     view 5 px off is left out: the disagreement does not rest on it.
     """
-    from scipy.stats import chi2
     cams, _, measured, uvs = _stream(80, 9)
     names = [(c.name, p) for c in cams for p in _PARAMS]
     scale = {'fx': 3.0, 'fy': 3.0, 'cx': 2.0, 'cy': 2.0, 'k1': 1e-3, 'k2': 1e-3,

@@ -633,12 +633,9 @@ def joint_disagreement(model: PredictionModel, views, camera, scale=1.0, leave_w
             continue
         r.append(got[0][0])
         d2.append(got[2][0])
-        if got[3] is None or C is None:
-            D.append(got[1][0])
-            G.append(None)
-        else:
-            D.append(got[1][0] - got[3][0] @ C @ got[3][0].T)
-            G.append(got[3][0])
+        # g is given exactly when the model has a joint covariance (C).
+        G.append(got[3][0] if C is not None else np.zeros((2, 0)))
+        D.append(got[1][0] - G[-1] @ C @ G[-1].T if C is not None else got[1][0])
     if leave_worst and len(r) > 2:
         worst = int(np.argmax(d2))
         r, D, G = (x[:worst] + x[worst + 1:] for x in (r, D, G))
@@ -648,7 +645,7 @@ def joint_disagreement(model: PredictionModel, views, camera, scale=1.0, leave_w
     Sigma = np.zeros((2 * n, 2 * n))
     for i, Di in enumerate(D):
         Sigma[2 * i:2 * i + 2, 2 * i:2 * i + 2] = Di
-    if all(g is not None for g in G):
+    if C is not None:
         Gs = np.concatenate(G, axis=0)
         Sigma += Gs @ C @ Gs.T
     rs = np.concatenate(r)
@@ -1139,34 +1136,31 @@ class ChangeMonitor:
             # the patience counts from the CUSUM's firing (a climb may have begun many views
             # before the change).
             return None
-        if not fit.explains and len(sus['seen']) < MAX_SUSPECT_VIEWS:
-            # Not explained yet: wait while the latest views still disagree with the old
-            # calibration as a whole (the change may have begun after the climb did).
+        # A refit explains views that did not move as well as views that did: the views from
+        # the change point on must also disagree with the old camera, as the test itself
+        # sees them (k^2 and the joint covariance) but taken together, the calibration's
+        # error being common to them, and not on one view alone (joint_disagreement), at
+        # the false-alarm rate.
+        disagree = True
+        if fit.explains:
+            got = joint_disagreement(self.model, sus['seen'], camera, self.scale(camera))
+            disagree = got is None or got[0] > float(chi2.isf(self.settings.false_alarm,
+                                                              got[1]))
+        if not (fit.explains and disagree) and len(sus['seen']) < MAX_SUSPECT_VIEWS:
+            # Not explained, or too little disagreement taken together, yet: wait while the
+            # latest views still disagree with the old calibration one by one (the change
+            # may have begun after the climb did; a small change, a 0.5 % refocus near the
+            # image centre, shows over more views), keeping the suspect's change point
+            # rather than a new climb's, views later.
             latest = fit.old_d2[-CONFIRM_OBSERVATIONS:]
             if float(np.sum(latest)) > float(chi2.isf(self.settings.false_alarm,
                                                       2 * len(latest))):
                 return None
-        if fit.explains:
-            # A refit explains views that did not move as well as views that did: the
-            # views from the change point on must also disagree with the old camera, as the
-            # test itself sees them (k^2 and the joint covariance) but taken together, the
-            # calibration's error being common to them, and not on one view alone
-            # (joint_disagreement), at the false-alarm rate.  Otherwise the climb was a
-            # disagreement too weak to be a change.
-            got = joint_disagreement(self.model, sus['seen'], camera, self.scale(camera))
-            if got is not None and got[0] <= float(chi2.isf(self.settings.false_alarm,
-                                                            got[1])):
-                latest = fit.old_d2[-CONFIRM_OBSERVATIONS:]
-                if len(sus['seen']) < MAX_SUSPECT_VIEWS and float(np.sum(latest)) > float(
-                        chi2.isf(self.settings.false_alarm, 2 * len(latest))):
-                    # Too little yet, taken together, while the latest views still
-                    # disagree one by one: a small change (a 0.5 % refocus near the
-                    # image centre) shows over more views, and the suspect keeps its
-                    # change point rather than a new climb's, views later.
-                    return None
-                self.suspect = None
-                self._start_again(camera)
-                return None
+        if fit.explains and not disagree:
+            # The climb was a disagreement too weak to be a change.
+            self.suspect = None
+            self._start_again(camera)
+            return None
         stamp = sus['seen'][-1].stamp_ns
         evidence = dict(sus['evidence'])
         evidence['unexplained after refitting the camera'] = fit.ratio
