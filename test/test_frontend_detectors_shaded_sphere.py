@@ -243,8 +243,8 @@ def test_the_lamps_side_decides_between_near_equal_fits_over_a_textured_scene():
     the other side and shifted by a pixel or more towards where the ball is lit (the UR5
     cell's lamp; the scene's noise tips the balance).  Of the fits taken with a light prior
     from the earlier fits' directions, as the detector does, fewer are that far off, and the
-    99th percentile is smaller (measured over these 600 views: 2 fits more than 0.75 px off
-    against none, 99th percentile 0.50 against 0.39 px).
+    99th percentile is smaller (measured over these 600 views: 9 fits more than 0.75 px off
+    against none, 99th percentile 1.26 against 0.37 px).  One scene per camera, drawn once.
     """
     from armcal_ros.sim.cells import CELLS
     from armcal_ros.sim.render import clutter_scene
@@ -259,7 +259,9 @@ def test_the_lamps_side_decides_between_near_equal_fits_over_a_textured_scene():
     for i in np.flatnonzero(f.occlusion == OCCLUSION_NONE)[:1200:2]:
         c = int(f.camera[i])
         cam = sim.cameras[c]
-        scene = scenes.setdefault(c, clutter_scene(cam.width, cam.height, sensor, rng))
+        if c not in scenes:
+            scenes[c] = clutter_scene(cam.width, cam.height, sensor, rng)
+        scene = scenes[c]
         X = f.marker[i]
         u0, v0, signal, alpha = marker_signal(cam, X[None], st.marker_radius, sensor, 0.8,
                                               margin=4, with_alpha=True)

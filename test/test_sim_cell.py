@@ -5,6 +5,7 @@ import os
 import numpy as np
 import pytest
 
+from armcal_ros.core.camera import undistort_normalized
 from armcal_ros.sim.cell import (
     link_occluded, OCCLUSION_NONE, SCENARIOS, simulate_cell, SimSettings,
 )
@@ -96,6 +97,56 @@ def test_sphere_image_offset_is_tiny_and_coverage_is_geometric(cell):
     area = sphere_coverage(cam, X[0], 0.005, u0, v0, patch.shape[1], patch.shape[0], 16).sum()
     expected = np.pi * (cam.fx * 0.005 / depth) ** 2
     assert abs(area / expected - 1) < 0.15
+
+
+def _coverage_by_every_subpixel(cam, centres, radius, u0, v0, width, height, S):
+    """Coverage with every sub-pixel undistorted and tested (no pixel left out)."""
+    a = (np.arange(S) + 0.5) / S - 0.5
+    us = u0 + (np.arange(width)[:, None] + a[None, :]).ravel()
+    vs = v0 + (np.arange(height)[:, None] + a[None, :]).ravel()
+    gu, gv = np.meshgrid(us, vs)
+    xy = undistort_normalized(cam, np.column_stack([gu.ravel(), gv.ravel()]))
+    d = np.column_stack([xy, np.ones(len(xy))])
+    hits = np.zeros(len(d))
+    for C in cam.to_camera(np.atleast_2d(centres)):
+        cross = np.cross(d, C)
+        hits += (np.sum(cross * cross, axis=1) <= radius ** 2 * np.sum(d * d, axis=1)) & \
+            (d @ C > 0)
+    return (hits / len(np.atleast_2d(centres))).reshape(height, S, width, S).mean(axis=(1, 3))
+
+
+@pytest.mark.parametrize('case', ['centre', 'corner_of_a_wide_lens', 'cut_by_the_window',
+                                  'moving', 'close'])
+def test_a_spheres_coverage_leaves_out_no_pixel_it_reaches(case):
+    """
+    Only the pixels the sphere's cone may reach are supersampled: never one it does reach.
+
+    Against every sub-pixel undistorted and tested: a ball on the axis, in the corner of a
+    lens of strong barrel distortion (k1 -0.35), cut by the window's edge, moving over the
+    exposure, and 1 cm from the lens (its cone reaches z = 0: every pixel tested).
+    The two differ only where a sub-pixel's ray is interpolated rather than undistorted
+    (~1e-5 px), so by a sub-pixel or two on the outline at most.
+    """
+    from armcal_ros.core.camera import Camera
+    k1 = -0.35 if case == 'corner_of_a_wide_lens' else -0.1
+    cam = Camera('c', 640, 480, 400.0, 400.0, 320.0, 240.0, [k1, 0.08, 0.001, -0.001, 0.0])
+    S, radius = 6, 0.01
+    ray = {'corner_of_a_wide_lens': [0.75, 0.55, 1.0], 'close': [0.6, 0.3, 1.0]}.get(
+        case, [0.05, -0.02, 1.0])
+    depth = 0.0095 if case == 'close' else 1.0
+    centres = np.array(ray)[None] * depth
+    if case == 'moving':
+        centres = centres + np.outer(np.linspace(0, 1, 4), [0.02, 0.01, 0.0])
+    uv = cam.project(centres[:1])[0]
+    size = 30 if case != 'close' else 120
+    u0, v0 = int(uv[0]) - size // 2, int(uv[1]) - size // 2
+    if case == 'cut_by_the_window':
+        u0 = int(uv[0]) - 2
+    got = sphere_coverage(cam, centres, radius, u0, v0, size, size, S)
+    want = _coverage_by_every_subpixel(cam, centres, radius, u0, v0, size, size, S)
+    assert want.sum() > 3.0
+    assert np.abs(got - want).max() <= 2.0 / S ** 2 + 1e-12, np.abs(got - want).max()
+    assert abs(got.sum() - want.sum()) <= 2.0 / S ** 2 * np.sqrt(want.sum()) + 1e-12
 
 
 def test_noisy_render_has_marker_noise_glints_and_dark_background(cell):

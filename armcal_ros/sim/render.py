@@ -60,6 +60,7 @@ the tool's orientation as well as on the camera.
 """
 
 from dataclasses import dataclass
+import math
 from typing import Optional
 
 import numpy as np
@@ -184,19 +185,24 @@ def sphere_coverage(cam, centres, radius, u0, v0, width, height, supersample=8, 
     gu, gv = np.meshgrid(cu, cv)
     grid = undistort_normalized(cam, np.column_stack([gu.ravel(), gv.ravel()]))
     grid = grid.reshape(height + 1, width + 1, 2)
+    C_all = cam.to_camera(np.atleast_2d(np.asarray(centres, float)))
+    # Only the pixels the sphere's cone can reach are supersampled: a sub-pixel's ray is a
+    # convex combination of its pixel's corners, so a pixel whose corners' bounding box misses
+    # the cone's (:func:`_cone_box`) has no sub-pixel inside.  The rest is zero, as the test
+    # below would find it, and the pixels kept are computed exactly as over the whole window.
+    py, px = np.nonzero(_near_cone(grid, C_all, radius))
     a = ((np.arange(S) + 0.5) / S)
-    A = a[None, None, None, :, None]            # along u
-    B = a[None, :, None, None, None]            # along v
-    g00 = grid[:-1, None, :-1, None, :]
-    g01 = grid[:-1, None, 1:, None, :]
-    g10 = grid[1:, None, :-1, None, :]
-    g11 = grid[1:, None, 1:, None, :]
+    A = a[None, None, :, None]                  # along u
+    B = a[None, :, None, None]                  # along v
+    g00 = grid[py, px][:, None, None, :]
+    g01 = grid[py, px + 1][:, None, None, :]
+    g10 = grid[py + 1, px][:, None, None, :]
+    g11 = grid[py + 1, px + 1][:, None, None, :]
     xy = ((1 - A) * (1 - B) * g00 + A * (1 - B) * g01 + (1 - A) * B * g10 + A * B * g11)
     xy = xy.reshape(-1, 2)
     d = np.column_stack([xy, np.ones(len(xy))])
     dd = np.einsum('ij,ij->i', d, d)
     hits = np.zeros(len(d))
-    C_all = cam.to_camera(np.atleast_2d(np.asarray(centres, float)))
     lamp_c = None if lamp is None else cam.to_camera(np.asarray(lamp, float)[None])[0]
     axis_c = None if led_axis is None else cam.rotation @ np.asarray(led_axis, float)
     for C in C_all:
@@ -219,7 +225,49 @@ def sphere_coverage(cam, centres, radius, u0, v0, width, height, supersample=8, 
         shade = ambient + (1.0 - ambient) * np.maximum(np.einsum('ij,ij->i', n, toward), 0.0)
         hits[inside] += shade
     hits /= len(C_all)
-    return hits.reshape(height, S, width, S).mean(axis=(1, 3))
+    fine = np.zeros((height, S, width, S))
+    fine[py, :, px, :] = hits.reshape(-1, S, S)
+    return fine.mean(axis=(1, 3))
+
+
+def _cone_box(C, radius):
+    """
+    Return (lo (2,), hi (2,)) bounding the sphere's cone on the plane z = 1, or None.
+
+    The rays within a = asin(r / |C|) of the centre's direction meet z = 1 in an ellipse; its
+    farthest point from c = C / C_z is the outer end of its major axis, at tan(t + a) - tan t
+    from c (t the centre's field angle; tan is convex, so the outer end is the farther).  None
+    when the cone reaches z <= 0 (t + a >= 90 deg): then every ray must be tested.
+    """
+    D = float(np.linalg.norm(C))
+    if not (D > radius and C[2] > 0):
+        return None
+    alpha = math.asin(radius / D)
+    theta = math.acos(min(C[2] / D, 1.0))
+    if theta + alpha >= 0.5 * math.pi - 1e-6:
+        return None
+    reach = 1.01 * (math.tan(theta + alpha) - math.tan(theta)) + 1e-9
+    c = C[:2] / C[2]
+    return c - reach, c + reach
+
+
+def _near_cone(grid, C_all, radius):
+    """
+    Return (h, w) bool: the pixels that may see the sphere from some centre of ``C_all``.
+
+    A pixel may when its corners' bounding box (``grid`` (h+1, w+1, 2), the normalised
+    corners) meets the box of :func:`_cone_box`; every pixel when a cone has no box.
+    """
+    corners = (grid[:-1, :-1], grid[:-1, 1:], grid[1:, :-1], grid[1:, 1:])
+    lo = np.minimum.reduce(corners)
+    hi = np.maximum.reduce(corners)
+    near = np.zeros(lo.shape[:2], bool)
+    for C in C_all:
+        box = _cone_box(C, radius)
+        if box is None:
+            return np.ones(lo.shape[:2], bool)
+        near |= np.all((hi >= box[0]) & (lo <= box[1]), axis=-1)
+    return near
 
 
 def vignetting(cam, u, v):

@@ -135,18 +135,21 @@ class _Model:
         dy = (self.vs[sy] - cy) / r
         rho2 = dy[:, None] ** 2 + dx[None, :] ** 2
         rho = np.sqrt(rho2)
-        cov = np.clip((1.0 - rho) * (r * SUPERSAMPLE) + 0.5, 0.0, 1.0)
+        cov = np.minimum(np.maximum((1.0 - rho) * (r * SUPERSAMPLE) + 0.5, 0.0), 1.0)
         z = np.sqrt(np.maximum(1.0 - rho2, 0.0))
         lit = cov if p is None else cov * (p[0] * dx[None, :] + p[1] * dy[:, None]
                                            + p[2] * z > 0)
         ly, lxt = self._operators(sigma)
-        ly, lxt = ly[:, sy], lxt[sx]
+        fine = np.empty((4,) + cov.shape)
+        fine[0] = cov
+        np.multiply(lit, dx[None, :], out=fine[1])
+        np.multiply(lit, dy[:, None], out=fine[2])
+        np.multiply(lit, z, out=fine[3])
+        # One stacked product for the four images (the same products as one at a time).
+        blurred = ly[:, sy] @ fine @ lxt[sx]
         A = np.empty((self.h * self.w, self.n_linear))
         A[:, 0] = self._ones
-        A[:, 1] = (ly @ cov @ lxt).ravel()
-        A[:, 2] = (ly @ (lit * dx[None, :]) @ lxt).ravel()
-        A[:, 3] = (ly @ (lit * dy[:, None]) @ lxt).ravel()
-        A[:, 4] = (ly @ (lit * z) @ lxt).ravel()
+        A[:, 1:5] = blurred.reshape(4, -1).T
         if self.scene is not None:
             A[:, 5] = -A[:, 1] * self.scene
         return A
