@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from armcal_ros.core.change import (agreement, ARM, cap_of, CONFIRM_OBSERVATIONS,
-                                    MAX_SUSPECT_VIEWS,
+                                    MAX_SUSPECT_VIEWS, ONSET_SLACK,
                                     ChangeMonitor, ChangeSettings, fuse,
                                     innovation, joint_disagreement, PredictionModel,
                                     reference_scales,
@@ -729,6 +729,53 @@ def test_of_two_cameras_the_one_whose_exclusion_agrees_clearly_better_is_named(w
     assert evidence[f'refit {a}'] <= 1.0 and evidence[f'refit {b}'] <= 1.0
     assert kind == 'camera' and camera == changed.name
     assert evidence['agreement without it, F against the next'] > 5.0
+
+
+@pytest.mark.parametrize('cameras, without_arm, asked',
+                         [(2, 5.0, True), (2, 0.5, False), (3, 5.0, False)])
+def test_exclusions_are_compared_only_between_two_cameras_that_disagree(monkeypatch, cameras,
+                                                                        without_arm, asked):
+    """
+    The F test between exclusions (``_clearly_best``) is asked only where it means a camera.
+
+    Every exclusion leaves agreement and every camera's refit explains its views: a weak
+    disagreement.  With two cameras that disagree with each other it is asked, and names the
+    camera it picks.  With two that agree without the arm (a change of the arm or marker
+    along one camera's rays leaves that camera agreeing with the arm and the other not) it is
+    not, and nothing is named; nor with three cameras, where every exclusion leaves cameras
+    that place the point without the arm.
+    """
+    from types import SimpleNamespace
+    cams, _, measured, uvs = _stream(80, 12)
+    names = [c.name for c in cams[:cameras]]
+    model = PredictionModel({c.name: c for c in cams[:cameras]},
+                            {n: PIXEL_SIGMA for n in names}, ARM_SIGMA)
+    mon = ChangeMonitor(model, {n: 1.0 for n in names})
+    both = [k for k, o in enumerate(uvs) if all(n in o for n in names)]
+    both = both[:CONFIRM_OBSERVATIONS + ONSET_SLACK + 2]
+    assert len(both) == CONFIRM_OBSERVATIONS + ONSET_SLACK + 2
+    seen = [View(k, measured[k], {n: uvs[k][n] for n in names}) for k in both]
+
+    def agreement_of(seen, leave_out=None, use_arm=True, alpha=None):
+        if not use_arm:
+            return without_arm
+        return 2.0 if leave_out is None else 0.5
+    calls = []
+
+    def clearly_best(seen, ok):
+        calls.append(sorted(ok))
+        return names[-1], 9.0
+    monkeypatch.setattr(mon, '_agreement', agreement_of)
+    monkeypatch.setattr(mon, '_refit', lambda n, views, scales: SimpleNamespace(
+        ratio=0.5, plausible=True))
+    monkeypatch.setattr(mon, '_clearly_best', clearly_best)
+    kind, camera, evidence = mon._attribute(seen, names[0])
+    assert all(evidence[f'refit {n}'] == 0.5 for n in names)
+    assert bool(calls) == asked, calls
+    if asked:
+        assert calls == [sorted(names)] and (kind, camera) == ('camera', names[-1])
+    else:
+        assert kind == 'unexplained' and evidence['ambiguous'] == 1.0, (kind, evidence)
 
 
 def _tracked(tracker, X, measured, uvs, knock_from, knocked, rng, offer=None):
