@@ -18,7 +18,7 @@ from armcal_ros.core.adjustment import (AdjustmentResult, covariance_under, Obse
                                         SolverSettings, adjust, with_covariance)
 from armcal_ros.core.camera import Camera
 from armcal_ros.core.initialisation import (initialise_camera, initialise_with_intrinsics,
-                                            InitResult)
+                                            InitResult, MIN_POINTS_PNP)
 from armcal_ros.core.model_selection import ModelSelection, select_model
 from armcal_ros.core.priors import KINEMATIC_MODELS, PointPrior, PriorSettings
 
@@ -161,14 +161,37 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
     if cold or prior.model in ('fixed', 'auto'):
         fixed = adjust(cams, measured, sub, replace(prior, model='fixed'), settings)
         stages.append(('fixed', fixed.cost, fixed.iterations, fixed.time_s))
+        few = _too_few_inliers(fixed, sub)
+        if few and len(few) < len(keep):
+            # A camera whose fixed fit keeps too few of its views to fix its pose (a start that
+            # fell into a wrong minimum, views of something else) would leave the later stages
+            # singular - every model's evidence undefined - and the other cameras with it.
+            for k, (m, n) in few.items():
+                init[specs[keep[k]].name] = InitResult(
+                    False, 'too_few_inliers', f'camera {specs[keep[k]].name}: only {m} of its '
+                    f'{n} observations fit its fixed-model solution (fewer than '
+                    f'{MIN_POINTS_PNP}): left out')
+            stay = [k for k in range(len(keep)) if k not in few]
+            index = -np.ones(len(keep), dtype=np.int64)
+            index[stay] = np.arange(len(stay))
+            m = index[sub.camera] >= 0
+            sub = Observations(index[sub.camera[m]], sub.point[m], sub.uv[m])
+            keep = [keep[k] for k in stay]
+            fixed = adjust([cams[k] for k in stay], measured, sub, replace(prior, model='fixed'),
+                           settings)
+            stages.append(('fixed', fixed.cost, fixed.iterations, fixed.time_s))
         cams = fixed.camera_list()
         inliers = fixed.inliers
         final = fixed
     sigma, source = settings.pixel_sigma, 'given'
     if prior.model == 'auto':
-        selection = select_model(cams, measured, sub, prior, model_settings, kinematics,
-                                 inliers, rng=rng, pooled_sigma_px=pooled_sigma_px,
-                                 estimate_noise=settings.estimate_noise is not False)
+        try:
+            selection = select_model(cams, measured, sub, prior, model_settings, kinematics,
+                                     inliers, rng=rng, pooled_sigma_px=pooled_sigma_px,
+                                     estimate_noise=settings.estimate_noise is not False)
+        except ValueError as exc:       # no candidate could be adjusted: a failed solve
+            return CalibrationResult(False, 'failed', f'auto: {exc}', None, init, stages,
+                                     time.perf_counter() - t0)
         final = selection.result
         stages.append((f'auto:{selection.settings.model}', final.cost, final.iterations,
                        selection.time_s))
@@ -205,6 +228,24 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
                              time.perf_counter() - t0,
                              {specs[j].name: k for k, j in enumerate(keep)}, selection,
                              float(sigma), source, uncertainty)
+
+
+def _too_few_inliers(result: AdjustmentResult, obs: Observations) -> Dict[int, Tuple[int, int]]:
+    """
+    Return {camera index: (inliers, observations)} of the cameras with under MIN_POINTS_PNP.
+
+    Six points are the fewest that fix a camera's pose with its intrinsics known
+    (:mod:`~armcal_ros.core.initialisation`); with fewer inliers its parameters are
+    unobservable.
+    """
+    few = {}
+    inliers = np.asarray(result.inliers, bool)
+    for k in np.unique(obs.camera):
+        sel = obs.camera == k
+        m = int(np.sum(inliers[sel]))
+        if m < MIN_POINTS_PNP:
+            few[int(k)] = (m, int(np.sum(sel)))
+    return few
 
 
 def variance_factor_sigma(result: AdjustmentResult) -> float:
