@@ -223,6 +223,10 @@ def test_a_camera_whose_fixed_fit_keeps_too_few_views_is_left_out_and_auto_solve
     assert sorted(res.cameras) == names[:2]
     assert f'camera {names[2]}: only' in res.message and 'left out' in res.message
     assert not res.init[names[2]].success
+    # The engine's calibration names it as not calibrated, with the reason.
+    from armcal_ros.core.results import calibration_from_result
+    cal = calibration_from_result(res, 40)
+    assert sorted(cal.cameras) == names[:2] and 'left out' in cal.not_calibrated[names[2]]
     assert 0.2 < res.pixel_sigma < 0.4, res.pixel_sigma
     for cam in prob.cameras[:2]:
         est = res.cameras[cam.name]

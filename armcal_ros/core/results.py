@@ -95,8 +95,9 @@ def calibration_from_result(result: CalibrationResult, n_samples, hyper=None,
     """
     Turn a solver result into a :class:`Calibration` (pose covariances included).
 
-    A camera whose estimate is not 'ok' (a degenerate fit) is left out, named with its reason
-    in :attr:`Calibration.not_calibrated`, and out of the 3-D error figures.  The cameras
+    A camera whose estimate is not 'ok' (a degenerate fit), or that the solve left out for
+    keeping too few views, is left out, named with its reason in
+    :attr:`Calibration.not_calibrated`, and out of the 3-D error figures.  The cameras
     named in ``hidden`` are left out silently: solved beside the others but not cameras of
     the cell now (a moved camera's earlier self).
     """
@@ -109,6 +110,9 @@ def calibration_from_result(result: CalibrationResult, n_samples, hyper=None,
     good = {name: est for name, est in shown.items() if est.status == 'ok'}
     skipped = {name: est.message or est.status for name, est in shown.items()
                if name not in good}
+    # A camera whose fixed fit kept too few views was left out of the solve (core.calibration).
+    skipped.update({name: r.message for name, r in result.init.items()
+                    if r.status == 'too_few_inliers' and name not in hidden})
     own, total = {}, float('nan')
     if adj.points is not None and len(adj.points) and good:
         cov, own, _ = triangulation_covariance([e.camera for e in good.values()], adj.covariance,
