@@ -550,7 +550,9 @@ class CalibrationEngine:
             due = not last or n >= growth * last or ready or self._a_camera_grew(growth)
         if n < self.settings.min_samples or not self.image_sizes or not due:
             return None
-        return self.solve()
+        # As in the node: an error in a solve along the way is that solve's failure, not the
+        # end of the recording's calibration (the last solve, over everything, decides).
+        return self._guarded_solve()
 
     def _a_camera_grew(self, growth):
         """
@@ -1456,12 +1458,17 @@ class CalibrationEngine:
         Without this an error (or a solver process that died) would end the thread with a
         traceback on stderr and no outcome: the node would go on as if no solve had been due.
         """
+        self._guarded_solve()
+
+    def _guarded_solve(self) -> SolveOutcome:
+        """Return :meth:`solve`'s outcome, or a failed one saying what an unexpected error was."""
         t0 = time.perf_counter()
         try:
-            self.solve()
+            return self.solve()
         except Exception as exc:  # noqa: B902 - whatever it is, it must be reported
-            self._finish(SolveOutcome(False, f'solve failed: {type(exc).__name__}: {exc}',
-                                      None, None, len(self.store), time.perf_counter() - t0))
+            return self._finish(SolveOutcome(
+                False, f'solve failed: {type(exc).__name__}: {exc}', None, None,
+                len(self.store), time.perf_counter() - t0))
 
     def maybe_solve_async(self, force=False):
         """Start a background solve if one is due (or ``force``); return True if started."""

@@ -314,8 +314,11 @@ def collect_samples(source, settings: Settings, progress: Callable[[int, int], N
         for cam, (w, h) in collector.image_sizes.items():
             if cam in engine.settings.camera_names:
                 engine.set_image_size(cam, w, h)
-        if engine.solve_if_grown() is not None:
+        outcome = engine.solve_if_grown()
+        if outcome is not None:
             solves += 1
+            if outcome.result is None and outcome.reason.startswith('solve failed') and log:
+                log(f'a solve while reading the recording failed ({outcome.reason}); reading on')
 
     frame_ids, undecodable = {}, {}
     for event in rec.events():

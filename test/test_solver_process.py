@@ -141,3 +141,32 @@ def test_a_background_solve_that_fails_unexpectedly_ends_in_a_reported_outcome()
     assert len(heard) == 1 and not heard[0].accepted
     assert 'SolverProcessError' in heard[0].reason and 'exit code -9' in heard[0].reason
     assert eng.current is None and eng.n_solves == 1
+
+
+def test_a_solve_along_the_recording_that_fails_unexpectedly_is_an_outcome_not_the_end():
+    """
+    Offline, an error in a solve made while a recording is read ends that solve, not the job.
+
+    ``solve_if_grown`` (``armcal calibrate``'s solves along the bag) reports a failed outcome
+    as the node's solver thread does; the next solve due runs as usual.
+    """
+    prob = make_problem(40, 5)
+    eng = CalibrationEngine(EngineSettings([c.name for c in prob.cameras],
+                                           PriorSettings('correlated'),
+                                           SolverSettings(pixel_sigma=0.3), min_samples=15))
+    for c in prob.cameras:
+        eng.set_image_size(c.name, c.width, c.height)
+    samples = _samples(prob)
+    real = eng.run_solver
+    eng.run_solver = _broken
+    for s in samples[:20]:
+        eng.add_sample(s)
+    out = eng.solve_if_grown()
+    assert out is not None and not out.accepted and out.result is None
+    assert out.reason.startswith('solve failed: SolverProcessError'), out.reason
+    assert eng.n_solves == 1 and eng.current is None
+    eng.run_solver = real
+    for s in samples[20:]:
+        eng.add_sample(s)
+    out = eng.solve_if_grown()
+    assert out is not None and out.accepted, out.reason
