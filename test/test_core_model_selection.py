@@ -7,13 +7,14 @@ held-out check in test_core_holdout.py.
 import numpy as np
 import pytest
 
-from armcal_ros.core.adjustment import SolverSettings
+from armcal_ros.core.adjustment import Observations, SolverSettings
 from armcal_ros.core.calibration import calibrate
 from armcal_ros.core.model_selection import (_local_lengths, _occam_choice, _search_scale,
                                              Candidate, DEFAULT_GRID, HYBRID_MAX_L_FRACTION,
                                              OCCAM_MARGIN, SCALE_BOUNDS, SCALE_EXTENSIONS,
                                              SCALE_REFINEMENTS, SCALE_TOLERANCE, select_model)
 from armcal_ros.core.priors import PriorSettings
+from armcal_ros.core.results import calibration_from_result
 from armcal_ros.sim.robot_points import make_robot_problem
 from armcal_ros.sim.synthetic import make_problem
 
@@ -209,7 +210,6 @@ def test_a_camera_whose_fixed_fit_keeps_too_few_views_is_left_out_and_auto_solve
     seeds ended unconverged, the good cameras with them.  Left out, the others calibrate at
     the true noise, and the result says which camera was left out and why.
     """
-    from armcal_ros.core.adjustment import Observations
     prob = make_problem(40, 1, pixel_sigma=0.3)
     names = [c.name for c in prob.cameras]
     rng = np.random.default_rng(1)
@@ -224,7 +224,6 @@ def test_a_camera_whose_fixed_fit_keeps_too_few_views_is_left_out_and_auto_solve
     assert f'camera {names[2]}: only' in res.message and 'left out' in res.message
     assert not res.init[names[2]].success
     # The engine's calibration names it as not calibrated, with the reason.
-    from armcal_ros.core.results import calibration_from_result
     cal = calibration_from_result(res, 40)
     assert sorted(cal.cameras) == names[:2] and 'left out' in cal.not_calibrated[names[2]]
     assert 0.2 < res.pixel_sigma < 0.4, res.pixel_sigma

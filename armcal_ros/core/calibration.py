@@ -145,10 +145,7 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
         msgs = '; '.join(r.message for r in init.values())
         return CalibrationResult(False, 'no_camera', f'no camera could be initialised: {msgs}',
                                  None, init, [], time.perf_counter() - t0)
-    remap = -np.ones(len(specs), dtype=np.int64)
-    remap[keep] = np.arange(len(keep))
-    sel = remap[obs.camera] >= 0
-    sub = Observations(remap[obs.camera[sel]], obs.point[sel], obs.uv[sel])
+    sub = _observations_of(obs, len(specs), keep)
     stages = []
     points = None if points_init is None else np.asarray(points_init, float)
     inliers = None
@@ -172,11 +169,8 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
                     f'{n} observations fit its fixed-model solution (fewer than '
                     f'{MIN_POINTS_PNP}): left out')
             stay = [k for k in range(len(keep)) if k not in few]
-            index = -np.ones(len(keep), dtype=np.int64)
-            index[stay] = np.arange(len(stay))
-            m = index[sub.camera] >= 0
-            sub = Observations(index[sub.camera[m]], sub.point[m], sub.uv[m])
             keep = [keep[k] for k in stay]
+            sub = _observations_of(obs, len(specs), keep)
             fixed = adjust([cams[k] for k in stay], measured, sub, replace(prior, model='fixed'),
                            settings)
             stages.append(('fixed', fixed.cost, fixed.iterations, fixed.time_s))
@@ -228,6 +222,14 @@ def calibrate(specs: Sequence[CameraSpec], measured, obs: Observations,
                              time.perf_counter() - t0,
                              {specs[j].name: k for k, j in enumerate(keep)}, selection,
                              float(sigma), source, uncertainty)
+
+
+def _observations_of(obs: Observations, n_specs: int, keep: List[int]) -> Observations:
+    """Return the observations of the cameras ``keep`` (spec indices), renumbered 0..len-1."""
+    remap = -np.ones(n_specs, dtype=np.int64)
+    remap[keep] = np.arange(len(keep))
+    sel = remap[obs.camera] >= 0
+    return Observations(remap[obs.camera[sel]], obs.point[sel], obs.uv[sel])
 
 
 def _too_few_inliers(result: AdjustmentResult, obs: Observations) -> Dict[int, Tuple[int, int]]:
