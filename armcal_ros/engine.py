@@ -51,7 +51,7 @@ from armcal_ros.change_tracking import (ArmPrediction, ChangeTracker, CHANGES_FI
 from armcal_ros.core.adjustment import Observations, SolverSettings
 from armcal_ros.core.board_calibration import BoardData, calibrate_board, MountSettings
 from armcal_ros.core.calibration import calibrate, CalibrationResult, CameraSpec
-from armcal_ros.core.change import ARM, ChangeSettings
+from armcal_ros.core.change import ARM, ChangeSettings, LAG_VIEWS, SCALE_WINDOW
 from armcal_ros.core.initialisation import initialise_with_intrinsics
 from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
 from armcal_ros.core.image_noise import pooled_pixel_sigma
@@ -71,6 +71,12 @@ from armcal_ros.io.results_files import (CALIBRATION_FILE, load_calibration,
 
 #: Which cameras use their fitted lit-ball centres, and why (:meth:`CalibrationEngine.save`).
 CENTRES_FILE = 'lit_centres.json'
+#: A camera's views after a reported disagreement within which a change declared on it is
+#: taken to be what the report saw first (:meth:`CalibrationEngine._epoch_limits`): the change
+#: monitor's scale window and the views it lags by (core/change.py), after which the scale
+#: holds views from after the report alone.  The measured case it must keep: a 0.5 % refocus
+#: declared 18 of the camera's views after its report.
+REPORT_LINK_VIEWS = SCALE_WINDOW + LAG_VIEWS
 
 
 @dataclass
@@ -740,6 +746,12 @@ class CalibrationEngine:
         and the declared onset 50 s late, 18 views of the new lens among the old.  Retired
         views are all from before the declared onset; those from the report's onset on are
         left out of the earlier self, which has one lens and one pose.
+
+        A report is taken for the change's first sign only while the camera has had at most
+        :data:`REPORT_LINK_VIEWS` views between the two onsets: after that many the change
+        monitor's scale is made of views after the report alone, and what it declares is
+        judged against them - a later change, not the report's (a report on a burst of bad
+        detections must not cost an earlier self the hours of views that follow it).
         """
         out, since = {}, {}
         for rec in sorted(self.changes.records, key=lambda r: r.detected_ns):
@@ -749,7 +761,8 @@ class CalibrationEngine:
                 since.setdefault(rec.camera, rec.onset_ns)
             elif rec.kind == 'camera':
                 first = since.pop(rec.camera, None)
-                if first is not None and first < rec.onset_ns:
+                if first is not None and first < rec.onset_ns and self.store.retired_since(
+                        rec.camera, rec.epoch, first) <= REPORT_LINK_VIEWS:
                     out[(rec.camera, rec.epoch)] = first
         return out
 

@@ -16,7 +16,7 @@ from armcal_ros.core.change import MEDIAN_CHI2_2, statistics
 from armcal_ros.core.evaluation import similarity_fit
 from armcal_ros.params import defaults
 from armcal_ros.core.priors import PriorSettings
-from armcal_ros.engine import CalibrationEngine, EngineSettings
+from armcal_ros.engine import CalibrationEngine, EngineSettings, REPORT_LINK_VIEWS
 from armcal_ros.frontend.samples import Observation, Sample
 from armcal_ros.settings import solver_settings
 from armcal_ros.sim.cell import CameraChange, SimSettings, simulate_cell
@@ -467,6 +467,32 @@ def test_views_after_a_reported_disagreement_are_kept_from_the_earlier_self():
                            record('camera', 'left', 400, 3)]
     # Only a report on the same camera before its declared change counts, and only once.
     assert eng._epoch_limits() == {('left', 2): 100}
+
+
+@pytest.mark.parametrize('views, linked', [(REPORT_LINK_VIEWS, True),
+                                           (REPORT_LINK_VIEWS + 1, False)])
+def test_a_report_is_a_later_changes_first_sign_only_within_the_monitors_window(views,
+                                                                                linked):
+    """
+    A report is a later change's first sign only within the monitor's window of views.
+
+    While the camera has had at most the change monitor's window of views between them, the
+    report's onset bounds the earlier self; after more, it does not: a burst of bad detections
+    reported early in a long session must not cut the earlier self short.
+    """
+    from armcal_ros.change_tracking import ChangeRecord
+    eng = CalibrationEngine(EngineSettings(['left', 'right'], PriorSettings('fixed')))
+    eng.changes.records = [ChangeRecord('disagreement', 'left', 0, 1000, 1010, 0.0, 1.0, 0),
+                           ChangeRecord('camera', 'left', 1, 10 ** 9, 10 ** 9 + 10, 0.0, 1.0, 0)]
+    # The camera's views retired by the change, before (not counted) and after the report.
+    for k in range(views + 5):
+        stamp = 1000 + (k - 5) * 10 ** 6
+        eng.store.retired.append((1, Sample(np.zeros(3), {
+            'left': Observation(np.zeros((1, 2)), [0], stamp_ns=stamp),
+            'right': Observation(np.zeros((1, 2)), [0], stamp_ns=stamp)})))
+    eng.store.retired.append((0, Sample(np.zeros(3), {
+        'left': Observation(np.zeros((1, 2)), [0], stamp_ns=2000)})))
+    assert eng._epoch_limits() == ({('left', 1): 1000} if linked else {})
 
 
 def test_an_earlier_selfs_name_gives_back_its_camera_and_epoch():

@@ -192,6 +192,11 @@ class SampleStore:
                         out[(name, tag)] = out.get((name, tag), 0) + 1
         return out
 
+    def retired_since(self, camera, epoch, since_ns):
+        """Return how many of ``camera``'s views retired as ``epoch`` are from ``since_ns`` on."""
+        return sum(1 for tag, smp in self.retired if tag == epoch and camera in smp.observations
+                   and smp.observations[camera].stamp_ns >= since_ns)
+
     def clear(self):
         """Remove every sample (ids keep increasing)."""
         self._samples = []
