@@ -205,19 +205,30 @@ def recovery_summary(rows, factor=1.2):
         got = [fn(*map(np.asarray, zip(*v))) for v in groups.values()]
         parts.append(f'{label} {sum(g <= factor for g in got)}/{len(got)} '
                      f'(largest {max(got):.2f} x)')
-    rng = np.random.default_rng(0)
-    pooled = []
-    for _ in range(2000):
-        e2 = p2 = 0.0
-        for v in groups.values():
-            a = np.asarray(v)[rng.integers(len(v), size=len(v))]
-            e2, p2 = e2 + np.sum(a[:, 0] ** 2), p2 + np.sum(a[:, 1] ** 2)
-        pooled.append(np.sqrt(e2 / p2))
-    allv = np.asarray([x for v in groups.values() for x in v])
+    ratio, low, high = pooled_rms_ratio(list(groups.values()))
     return (f'Cases whose recovered rotation error is within {factor} x of the post-only '
             f'calibration\'s: {"; ".join(parts)}. Over every case the RMS ratio is '
-            f'{rms_ratio(allv[:, 0], allv[:, 1]):.2f} x (95 % bootstrap interval '
-            f'{np.percentile(pooled, 2.5):.2f}-{np.percentile(pooled, 97.5):.2f}).')
+            f'{ratio:.2f} x (95 % bootstrap interval {low:.2f}-{high:.2f}).')
+
+
+def pooled_rms_ratio(cases, draws=2000):
+    """
+    Return (ratio, 2.5 %, 97.5 %): the RMS ratio of paired errors pooled over ``cases``.
+
+    ``cases`` is a list of [(a, b), ...] per case; the ratio is sqrt(sum a^2 / sum b^2) over
+    every pair, its interval a bootstrap with the pairs resampled within each case.
+    """
+    rng = np.random.default_rng(0)
+    boot = []
+    for _ in range(draws):
+        a2 = b2 = 0.0
+        for v in cases:
+            a = np.asarray(v)[rng.integers(len(v), size=len(v))]
+            a2, b2 = a2 + np.sum(a[:, 0] ** 2), b2 + np.sum(a[:, 1] ** 2)
+        boot.append(np.sqrt(a2 / b2))
+    allv = np.asarray([x for v in cases for x in v])
+    return (rms_ratio(allv[:, 0], allv[:, 1]), float(np.percentile(boot, 2.5)),
+            float(np.percentile(boot, 97.5)))
 
 
 def unchanged_pairs(rows, quiet):
@@ -250,19 +261,11 @@ def unchanged_summary(rows, quiet):
     groups = unchanged_pairs(rows, quiet)
     if not groups:
         return 'No case has an unchanged camera with and without the change.'
-    rng = np.random.default_rng(0)
 
     def pooled(keys):
+        ratio, low, high = pooled_rms_ratio([groups[k] for k in keys])
         allv = np.asarray([x for k in keys for x in groups[k]])
-        boot = []
-        for _ in range(2000):
-            e2 = w2 = 0.0
-            for k in keys:
-                a = np.asarray(groups[k])[rng.integers(len(groups[k]), size=len(groups[k]))]
-                e2, w2 = e2 + np.sum(a[:, 0] ** 2), w2 + np.sum(a[:, 1] ** 2)
-            boot.append(np.sqrt(e2 / w2))
-        return (f'{rms_ratio(allv[:, 0], allv[:, 1]):.2f} x (95 % bootstrap interval '
-                f'{np.percentile(boot, 2.5):.2f}-{np.percentile(boot, 97.5):.2f}; worse in '
+        return (f'{ratio:.2f} x (95 % bootstrap interval {low:.2f}-{high:.2f}; worse in '
                 f'{int(np.sum(allv[:, 0] > allv[:, 1]))} of {len(allv)} sessions)')
     cells = sorted({k[0] for k in groups}, key=list(CELL_SCENARIOS).index)
     parts = [f'{cell} {pooled([k for k in groups if k[0] == cell])}' for cell in cells]

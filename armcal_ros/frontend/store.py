@@ -193,7 +193,12 @@ class SampleStore:
         return out
 
     def retired_since(self, camera, epoch, since_ns):
-        """Return how many of ``camera``'s views retired as ``epoch`` are from ``since_ns`` on."""
+        """
+        Return how many of ``camera``'s views retired as ``epoch`` are from ``since_ns`` on.
+
+        Every retired view counts, on samples held or not (unlike :meth:`retired_views`): the
+        count is of the views the change monitor tested, not of those a solve can use.
+        """
         return sum(1 for tag, smp in self.retired if tag == epoch and camera in smp.observations
                    and smp.observations[camera].stamp_ns >= since_ns)
 
