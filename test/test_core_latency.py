@@ -9,6 +9,7 @@ image offset and stray detections, and refuse when the marker barely moves.
 import numpy as np
 import pytest
 
+from armcal_ros.core import latency
 from armcal_ros.core.latency import estimate_latency
 
 
@@ -32,6 +33,32 @@ def test_a_known_delay_is_recovered_with_an_honest_deviation(delay):
     assert np.max(np.abs(errors)) < 5e-4
     # The stated deviation is the scatter's (within the sampling error of 20 runs).
     assert 0.6 < np.std(errors) / np.mean(stds) < 1.5
+
+
+def _uneven_path(t):
+    """Return the points of ``_path`` run at 0.1-1.9 x its speed (10-570 px/s)."""
+    return _path(t + 0.9 / 0.4 * np.sin(0.4 * t))
+
+
+def test_stamp_jitter_is_in_the_stated_deviation(monkeypatch):
+    """
+    A stamp's jitter moves its frame's residual along the motion, more for faster frames.
+
+    The stated deviation (module doc, (2)) must be the scatter's with the block jackknife
+    out of the way; s / sqrt(sum |v|^2) said about half of it here.
+    """
+    monkeypatch.setattr(latency, '_block_jackknife', lambda *args: 0.0)
+    rng = np.random.default_rng(3)
+    errors, stds = [], []
+    for _ in range(40):
+        t = np.sort(rng.uniform(0, 20, 200))
+        uv = _uneven_path(t - 0.03 - rng.normal(0, 0.002, t.size)) + rng.normal(0, 0.05, (200, 2))
+        e = estimate_latency(t, uv, _uneven_path)
+        assert e.ok, e
+        errors.append(e.latency_s - 0.03)
+        stds.append(e.std_s)
+    ratio = np.std(errors) / np.mean(stds)
+    assert 0.75 < ratio < 1.33, (np.std(errors), np.mean(stds))
 
 
 def test_stray_detections_are_left_out():

@@ -69,8 +69,15 @@ def calibration_of(cam):
     return SimpleNamespace(cameras={'cam1': SimpleNamespace(camera=cam)})
 
 
-def stream(chain, cam, t_start, t_end, joint_rate=200.0, frame_rate=15.0):
-    """Yield the events of [t_start, t_end): joint states and images stamped DELAY late."""
+def stream(chain, cam, t_start, t_end, joint_rate=200.0, frame_rate=15.0, jitter=None,
+           jitter_seed=2):
+    """
+    Yield the events of [t_start, t_end): joint states and images stamped DELAY late.
+
+    ``jitter`` (a dict) adds 2 ms of Gaussian jitter to each image stamp and records it by
+    the stamp (ns).
+    """
+    rng = np.random.default_rng(jitter_seed)
     names = list(chain.joint_names)
     order = np.random.default_rng(1).permutation(len(names))
     events = []
@@ -81,6 +88,10 @@ def stream(chain, cam, t_start, t_end, joint_rate=200.0, frame_rate=15.0):
     for t in np.arange(t_start, t_end, 1.0 / frame_rate):
         uv = cam.project(chain.fk(joints(t)[None], OFFSET))[0]
         stamp = t + DELAY
+        if jitter is not None:
+            j = rng.normal(0.0, 0.002)
+            stamp += j
+            jitter[int(round(stamp * 1e9))] = j
         events.append((stamp, 'image', 'cam1', int(round(stamp * 1e9)), CoordinateImage(uv)))
     for e in sorted(events, key=lambda e: e[0]):
         yield e[1:]
@@ -147,3 +158,26 @@ def test_arguments_are_checked(chain):
         LatencyTimer({}, chain, OFFSET, bounds=(0.1, 0.0))
     with pytest.raises(ValueError, match='max_frames'):
         LatencyTimer({}, chain, OFFSET, max_frames=2)
+
+
+def test_the_frames_kept_are_not_chosen_by_their_stamps_jitter(chain):
+    """
+    A stamp's jitter must not decide whether its frame is timed.
+
+    Spacing the frames kept by their stamps (at least s after the last) picks, where s is a
+    whole number of frame intervals, the frames stamped late, and the estimate is late by a
+    good part of the jitter (such a rule kept frames jittered late by 0.2 of the jitter's
+    deviation here: 6 standard errors over these two streams).  The frames kept must jitter
+    as all frames do: their mean within 3 standard errors of zero.
+    """
+    cam = camera_for(chain)
+    kept = []
+    for seed in (100, 101):
+        timer = LatencyTimer({'cam1': CoordinateDetector()}, chain, OFFSET)
+        timer.set_cameras({'cam1': cam})
+        jitter = {}
+        feed(timer, stream(chain, cam, 0.0, 200.0, jitter=jitter, jitter_seed=seed))
+        kept += [jitter[int(round(t * 1e9))] for t, _ in timer._frames['cam1']]
+    assert len(kept) >= 400
+    z = np.mean(kept) / (0.002 / np.sqrt(len(kept)))
+    assert abs(z) < 3, (z, len(kept))
