@@ -1102,13 +1102,13 @@ class CalibrationEngine:
         return Observations(obs.camera, obs.point, obs.uv - offsets), (cams or None)
 
     def _forget_old_samples(self):
-        """Retire observations older than ``max_sample_age_s`` before the newest (lock held)."""
+        """Forget observations older than ``max_sample_age_s`` before the newest (lock held)."""
         age = self.settings.max_sample_age_s
         if age <= 0 or not len(self.store):
             return
         newest = max(o.stamp_ns for smp in self.store.samples
                      for o in smp.observations.values())
-        self.store.retire(newest - int(age * 1e9), epoch=-1)
+        self.store.forget(newest - int(age * 1e9))
 
     def _restart_changed(self, initial, restarted, arrays):
         """

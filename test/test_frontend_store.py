@@ -293,3 +293,30 @@ def test_retired_observations_leave_the_solver_view_and_survive_a_restart(tmp_pa
     # every camera (an arm change): cam1's three oldest go too
     assert back.retire(300, epoch=2) == 3
     assert len(back) == 3
+
+
+def test_forgetting_drops_old_views_for_good_and_keeps_the_sessions_origin(tmp_path):
+    store = SampleStore(min_sample_spacing=0.01)
+    for k in range(6):
+        store.add(Sample(point_nominal=[0.05 * k, 0, 0],
+                         observations={'cam1': obs(stamp=1000 + 100 * k),
+                                       'cam2': obs(stamp=1000 + 100 * k + 50)},
+                         stamp_ns=1000 + 100 * k))
+    store.retire(1300, epoch=1, camera='cam2')          # cam2 at 1050, 1150, 1250
+    # Views before 1200 go, held or retired: cam1 1000, 1100 and cam2 1050, 1150.
+    assert store.forget(1200) == 4
+    assert len(store) == 4 and store.views_per_camera() == {'cam1': 4, 'cam2': 3}
+    assert [(e, s.observations['cam2'].stamp_ns) for e, s in store.retired] == [(1, 1250)]
+    # The origin of the times said stays the first view given, through a restart too.
+    assert store.first_stamp_ns() == 1000
+    store.save(str(tmp_path))
+    assert SampleStore.load(str(tmp_path)).first_stamp_ns() == 1000
+    # A file written before the origin was saved: the earliest view it holds.
+    path = tmp_path / FILE_NAME
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files}
+    meta = json.loads(str(data['meta']))
+    del meta['origin_ns']
+    data['meta'] = np.array(json.dumps(meta))
+    np.savez_compressed(path, **data)
+    assert SampleStore.load(str(tmp_path)).first_stamp_ns() == 1200

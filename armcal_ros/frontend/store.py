@@ -20,6 +20,8 @@ A camera that moved (or a changed arm) starts a new *epoch*: :meth:`SampleStore.
 observations from before the change out of the samples into ``retired``, tagged with the epoch,
 where they are kept (and saved); :meth:`SampleStore.arrays` gives them back on request as a camera
 of another name (the camera as it was).  A sample left with no observation goes with them.
+:meth:`SampleStore.forget` drops observations older than a time, retired ones included, for
+good: forgetting for slow drift keeps memory and the saved file bounded over any session.
 
 "Distance" between two samples is that of their nominal points; for an extended target (a
 board) it is the largest distance between corresponding reference points
@@ -137,7 +139,7 @@ class SampleStore:
         self.evicted = 0
         #: (epoch, sample) of observations retired by a change (:meth:`retire`).
         self.retired: List[Tuple[int, Sample]] = []
-        self._first_stamp = (-1, 0)              # (revision, stamp) of first_stamp_ns
+        self._origin_ns = None                   # the earliest stamp ever given (first_stamp_ns)
 
     def __len__(self):
         return len(self._samples)
@@ -161,12 +163,19 @@ class SampleStore:
         return tuple(names)
 
     def first_stamp_ns(self):
-        """Return the earliest observation stamp held, retired ones included (0: none)."""
-        if self._first_stamp[0] != self.revision:
-            stamps = [o.stamp_ns for smp in self._samples for o in smp.observations.values()]
-            stamps += [o.stamp_ns for _, smp in self.retired for o in smp.observations.values()]
-            self._first_stamp = (self.revision, min(stamps) if stamps else 0)
-        return self._first_stamp[1]
+        """
+        Return the earliest observation stamp the store was ever given (0: none).
+
+        The origin of the times in change summaries ("t = 95 s"): it stays when the views
+        it came from are retired, forgotten or replaced, and is saved with the samples.
+        """
+        return 0 if self._origin_ns is None else self._origin_ns
+
+    def _note_origin(self, stamps):
+        stamps = [int(t) for t in stamps]
+        if stamps:
+            first = min(stamps)
+            self._origin_ns = first if self._origin_ns is None else min(self._origin_ns, first)
 
     def views_per_camera(self):
         """Return camera name -> the number of stored samples that camera saw."""
@@ -224,6 +233,7 @@ class SampleStore:
         if self._keys is not None and keys.shape != self._keys.shape[1:]:
             raise ValueError(f'sample has {len(keys)} reference points, the stored ones '
                              f'{self._keys.shape[1]}: one store holds one kind of target')
+        self._note_origin(o.stamp_ns for o in sample.observations.values())
         result = self._add(sample)
         self.counts[result] += 1
         if result is not AddResult.DROPPED:
@@ -342,6 +352,35 @@ class SampleStore:
             self.revision += 1
         return moved
 
+    def forget(self, before_ns):
+        """
+        Drop every observation stamped before ``before_ns``, retired ones included.
+
+        Unlike :meth:`retire` nothing is kept: what is forgotten is never solved again, and
+        keeping it would grow the store (and its file) by every view of a long session.  A
+        sample (or retired entry) left without observations goes.  Returns how many
+        observations were dropped.
+        """
+        dropped = 0
+        for smp in list(self._samples):
+            old = [name for name, o in smp.observations.items() if o.stamp_ns < before_ns]
+            for name in old:
+                del smp.observations[name]
+            dropped += len(old)
+            if old and not smp.observations:
+                self.remove(smp.id)
+        kept = []
+        for tag, smp in self.retired:
+            new = {name: o for name, o in smp.observations.items() if o.stamp_ns >= before_ns}
+            dropped += len(smp.observations) - len(new)
+            if new:
+                kept.append((tag, smp if len(new) == len(smp.observations)
+                             else replace(smp, observations=new, q=smp.q, pose=smp.pose)))
+        self.retired = kept
+        if dropped:
+            self.revision += 1
+        return dropped
+
     # -- solver view ----------------------------------------------------------------------
 
     def arrays(self, camera_names=None, epochs=None, until_ns=None):
@@ -436,7 +475,8 @@ class SampleStore:
         meta = dict(version=FORMAT_VERSION, camera_names=names,
                     joint_names=None if self.joint_names is None else list(self.joint_names),
                     max_samples=self.max_samples, min_sample_spacing=self.min_sample_spacing,
-                    same_point_tolerance=self.same_point_tolerance, next_id=self._next_id)
+                    same_point_tolerance=self.same_point_tolerance, next_id=self._next_id,
+                    origin_ns=self._origin_ns)
         out = dict(meta=np.array(json.dumps(meta)))
         out.update(_arrays_of(sorted(self._samples, key=lambda s: s.id), names))
         retired = _arrays_of([smp for _, smp in self.retired], names)
@@ -485,6 +525,10 @@ class SampleStore:
             retired = _samples_of({k[len('retired_'):]: v for k, v in arrays.items()
                                    if k.startswith('retired_')}, names)
             store.retired = list(zip((int(e) for e in arrays['retired_epoch']), retired))
+            store._note_origin(o.stamp_ns for _, smp in store.retired
+                               for o in smp.observations.values())
+        if meta.get('origin_ns') is not None:
+            store._note_origin([meta['origin_ns']])
         store._next_id = max(store._next_id, int(meta.get('next_id', 0)))
         store.counts = {r: 0 for r in AddResult}
         return store
