@@ -24,7 +24,9 @@ recorded again with the ball glowing alike from every side and every other effec
 the lamp-lit error over that one's is what the light costs when everything else is present,
 beside the lamp-lit error over the clean recording's (no effect at all).  The per-view fit
 (``shaded``) is run only where its use is the advice - the LED, whose bright side turns with
-the tool.
+the tool - and on the lamp-lit recording with the textured scene, where the pooled shift
+carries the centroid's unsmooth error over the texture (docs/BENCHMARKS.md, "Two more
+seeds"): what the per-view fit would give there.
 
 Usage: python bench/realism_effects.py [--seeds 5] [--duration 60] [--processes 2] [--table-only]
        [--only TEXT] (rerun only the effects whose label starts with TEXT, e.g. "all together")
@@ -57,6 +59,8 @@ CENTRES = ('centroid', 'shaded', 'shaded_pooled')
 #: The effect whose advice is the per-view fit (an LED turns with the tool); elsewhere the fit
 #: alone is `shaded_pooled`'s first stage and not run on its own.
 PER_VIEW_FIT = 'LED along the tool z, cos fall-off'
+#: The lamp-lit recording with every effect and the textured scene: the per-view fit as well.
+TEXTURED_TOGETHER = 'all together with the textured scene, 40 DN'
 #: Label prefix of the runs with every effect at once (latency measured, realistic light).
 TOGETHER = 'all together'
 #: In the label of an all-together recording with the ball glowing alike from every side:
@@ -66,7 +70,8 @@ UNIFORM = 'uniform light'
 
 def centres(label):
     """Return the ``sphere_centre`` values run for the effect ``label``."""
-    return CENTRES if label == PER_VIEW_FIT else ('centroid', 'shaded_pooled')
+    return CENTRES if label in (PER_VIEW_FIT, TEXTURED_TOGETHER) else ('centroid',
+                                                                       'shaded_pooled')
 
 
 def effects(cell):
@@ -144,8 +149,8 @@ def observation_errors(out, gt_dir, centre):
                 observations=int(len(errors)))
 
 
-def case(args):
-    """One cell, seed and effect: simulate, then calibrate with each centre."""
+def case(args, only_centres=None):
+    """One cell, seed and effect: simulate, then calibrate with each centre (or those given)."""
     cell, seed, duration, label, opts = args
     out = dict(cell=cell, seed=seed, effect=label)
     with tempfile.TemporaryDirectory() as tmp:
@@ -156,7 +161,7 @@ def case(args):
         gt = os.path.join(bag, 'ground_truth')
         base = yaml.safe_load(open(os.path.join(gt, 'params.yaml')))
         latency = [] if label.startswith(TOGETHER) else ['--no-latency']
-        for centre in centres(label):
+        for centre in only_centres or centres(label):
             doc = yaml.safe_load(yaml.safe_dump(base))
             doc['armcal']['ros__parameters'].update(marker_lamp=[], sphere_centre=centre)
             params = os.path.join(tmp, f'{centre}.yaml')
@@ -236,9 +241,16 @@ def together_summary(res):
             def say(v):
                 return (f'{np.median(v):.2f} x ({min(v):.2f}-{max(v):.2f}, {len(v)} seed(s))'
                         if v else 'n/a')
+            fitted = [lit / uni for seed in sorted({r['seed'] for r in res})
+                      for lit, uni in [(shape(cell, seed, label, 'shaded'),
+                                        shape(cell, seed, twin, 'centroid'))]
+                      if lit is not None and uni]
+            also = (f'; with each view\'s fit (`shaded`) {say(fitted)}'
+                    if 'shaded' in centres(label) else '')
             lines.append(f'- {cell}, {label[len(TOGETHER):].strip(" :") or "every effect"}: '
                          f'`shaded_pooled` over the same under uniform light {say(by_twin)}; '
-                         f'over the clean recording {say(by_clean)} (target: at most 2 x).')
+                         f'over the clean recording {say(by_clean)} (target: at most 2 x)'
+                         f'{also}.')
     return '\n'.join(['Shape error, all together, lamp-lit over uniform (the light\'s cost '
                       'with every other effect present) and over the clean recording:', ''] +
                      lines)
@@ -316,9 +328,9 @@ def main(argv=None):
         'again), and with the textured scene as well; each of these also with the ball '
         'glowing alike from every side and every other effect the same ("uniform light"): '
         'the light\'s own cost is the ratio of the two. The per-view fit (`shaded`) is run only '
-        'for the LED, where it is the advice. Shape and absolute error '
-        'against the simulator\'s cameras, and the limit beside them: the same recording '
-        'calibrated with the arm\'s true geometry and the `fixed` model '
+        'for the LED, where it is the advice, and on the lamp-lit textured recording. Shape '
+        'and absolute error against the simulator\'s cameras, and the limit beside them: the '
+        'same recording calibrated with the arm\'s true geometry and the `fixed` model '
         '(ground_truth/params_true_geometry.yaml; exact here, both cells\' scenario being '
         'geometric): what the detections alone leave. The solver\'s observations (for '
         '`shaded_pooled`, '
