@@ -57,9 +57,10 @@ from arm_effects import variants as arm_variants  # noqa: E402
 CELL_NAMES = ('puma-3cam', 'ur5-2cam')
 CENTRES = ('centroid', 'shaded', 'shaded_pooled')
 #: The effect whose advice is the per-view fit (an LED turns with the tool); elsewhere the fit
-#: alone is `shaded_pooled`'s first stage and not run on its own.
+#: alone is `shaded_pooled`'s first stage and not run on its own, but for TEXTURED_TOGETHER.
 PER_VIEW_FIT = 'LED along the tool z, cos fall-off'
-#: The lamp-lit recording with every effect and the textured scene: the per-view fit as well.
+#: The lamp-lit recording with every effect and the textured scene, where the pooled shift
+#: carries the texture's centroid error: the per-view fit is run there as well.
 TEXTURED_TOGETHER = 'all together with the textured scene, 40 DN'
 #: Label prefix of the runs with every effect at once (latency measured, realistic light).
 TOGETHER = 'all together'
@@ -228,23 +229,22 @@ def together_summary(res):
             twin = uniform_twin(cell, label)
             if twin is None:
                 continue
-            by_twin, by_clean = [], []
+            by_twin, by_clean, fitted = [], [], []
             for seed in sorted({r['seed'] for r in res if r['cell'] == cell}):
                 lit = shape(cell, seed, label, 'shaded_pooled')
+                fit = shape(cell, seed, label, 'shaded')
                 uni = shape(cell, seed, twin, 'centroid')
                 clean = shape(cell, seed, 'none', 'centroid')
                 if lit is not None and uni:
                     by_twin.append(lit / uni)
+                if fit is not None and uni:
+                    fitted.append(fit / uni)
                 if lit is not None and clean:
                     by_clean.append(lit / clean)
 
             def say(v):
                 return (f'{np.median(v):.2f} x ({min(v):.2f}-{max(v):.2f}, {len(v)} seed(s))'
                         if v else 'n/a')
-            fitted = [lit / uni for seed in sorted({r['seed'] for r in res})
-                      for lit, uni in [(shape(cell, seed, label, 'shaded'),
-                                        shape(cell, seed, twin, 'centroid'))]
-                      if lit is not None and uni]
             also = (f'; with each view\'s fit (`shaded`) {say(fitted)}'
                     if 'shaded' in centres(label) else '')
             lines.append(f'- {cell}, {label[len(TOGETHER):].strip(" :") or "every effect"}: '

@@ -335,22 +335,9 @@ class SampleStore:
         They move to :attr:`retired` tagged with ``epoch``; a sample left without observations
         is removed.  Returns the number of observations retired.
         """
-        moved = 0
-        for smp in list(self._samples):
-            old = {name: o for name, o in smp.observations.items()
-                   if (camera is None or name == camera) and o.stamp_ns < before_ns}
-            if not old:
-                continue
-            self.retired.append((int(epoch), replace(smp, observations=old, q=smp.q,
-                                                     pose=smp.pose)))
-            for name in old:
-                del smp.observations[name]
-            moved += len(old)
-            if not smp.observations:
-                self.remove(smp.id)
-        if moved:
-            self.revision += 1
-        return moved
+        taken = self._take_before(before_ns, camera)
+        self.retired += [(int(epoch), smp) for smp in taken]
+        return sum(len(smp.observations) for smp in taken)
 
     def forget(self, before_ns):
         """
@@ -361,14 +348,7 @@ class SampleStore:
         sample (or retired entry) left without observations goes.  Returns how many
         observations were dropped.
         """
-        dropped = 0
-        for smp in list(self._samples):
-            old = [name for name, o in smp.observations.items() if o.stamp_ns < before_ns]
-            for name in old:
-                del smp.observations[name]
-            dropped += len(old)
-            if old and not smp.observations:
-                self.remove(smp.id)
+        dropped = sum(len(smp.observations) for smp in self._take_before(before_ns))
         kept = []
         for tag, smp in self.retired:
             new = {name: o for name, o in smp.observations.items() if o.stamp_ns >= before_ns}
@@ -380,6 +360,28 @@ class SampleStore:
         if dropped:
             self.revision += 1
         return dropped
+
+    def _take_before(self, before_ns, camera=None):
+        """
+        Take ``camera``'s observations (every camera's if None) stamped before ``before_ns``.
+
+        Returns them as copies of their samples holding only those observations; a sample
+        left without observations is removed.
+        """
+        taken = []
+        for smp in list(self._samples):
+            old = {name: o for name, o in smp.observations.items()
+                   if (camera is None or name == camera) and o.stamp_ns < before_ns}
+            if not old:
+                continue
+            taken.append(replace(smp, observations=old, q=smp.q, pose=smp.pose))
+            for name in old:
+                del smp.observations[name]
+            if not smp.observations:
+                self.remove(smp.id)
+        if taken:
+            self.revision += 1
+        return taken
 
     # -- solver view ----------------------------------------------------------------------
 
