@@ -56,7 +56,7 @@ from armcal_ros.core.initialisation import initialise_with_intrinsics
 from armcal_ros.core.intrinsics_prior import IntrinsicsPrior
 from armcal_ros.core.image_noise import pooled_pixel_sigma
 from armcal_ros.core.kinematic_prior import KinematicData, tip_place
-from armcal_ros.core.light_pooling import compare_centres, pool_light_shift, PooledShift
+from armcal_ros.core.light_pooling import compare_solves, pool_light_shift, PooledShift
 from armcal_ros.core.marker_light import image_offsets
 from armcal_ros.core.priors import KINEMATIC_MODELS, PointPrior, PriorSettings
 from armcal_ros.core.results import Calibration, calibration_from_result
@@ -204,8 +204,8 @@ def lit_centres(arrays, fitted=frozenset()) -> LitCentres:
     smooth's variance, so that :func:`~armcal_ros.core.image_noise.pooled_pixel_sigma` sees
     the noise of the new centres: a frame variance s^2 + n v per axis, i.e.
     spread^2 = c^2 + 2 (n - 1) v for the centroid's spread c over n frames.  The cameras named
-    in ``fitted`` keep their fitted centres (the engine's choice by a calibration's
-    residuals, :func:`~armcal_ros.core.light_pooling.compare_centres`).
+    in ``fitted`` keep their fitted centres (the engine's choice by each kind's own
+    solve, :func:`~armcal_ros.core.light_pooling.compare_solves`).
     """
     nan = np.full(arrays.uv.shape, np.nan)
     has = np.all(np.isfinite(arrays.centroid_uv), axis=1)
@@ -421,8 +421,10 @@ class CalibrationEngine:
         #: Camera -> its pooled light shift at the last solve (``pool_light_shift``).
         self.light_pooling = {}
         #: Cameras whose fitted lit-ball centres are used though their shift pools: a
-        #: calibration fitted them clearly better (:meth:`_centre_switches`).
+        #: calibration fitted them clearly better (:meth:`_choose_centres`).
         self._fitted_centres = set()
+        #: Views with both kinds of centre when the kinds were last weighed (:meth:`_centres_due`).
+        self._centres_compared_at: Optional[int] = None
         #: Camera -> why its kind of centre was last changed (shown with its pooling).
         self._centre_notes: Dict[str, str] = {}
         #: A changed camera's earlier self in the solve (:meth:`_epoch_cameras`) -> its last
@@ -924,19 +926,10 @@ class CalibrationEngine:
                 shared = {}
         # With a lamp given the solve's views are corrected ones: no like-for-like other kind.
         if lit is not None and self.settings.marker_light is None:
-            switched = self._centre_switches(result, arrays, lit, sel, remap, specs_kept)
-            if switched:
-                other = self._switch_centres(arrays, lit, switched)
-                warm = {k: c.camera for k, c in result.adjustment.cameras.items()
-                        if c.camera is not None and c.status == 'ok'}
-                if searching and self._auto_choice is not None:
-                    prior = self._auto_choice
-                again = self._calibrate_once(other, sel, remap, specs_kept, prior, False, kin,
-                                             {**(initial or {}), **warm}, n, shared)
-                if again[0].adjustment is not None and again[0].success:
-                    arrays = other
-                    result, kw, points, place, note = again
-                    self._adopt_centres(switched, lit)
+            chosen = self._choose_centres(result, arrays, lit, sel, remap, specs_kept,
+                                          prior, searching, kin, initial, n, shared)
+            if chosen is not None:
+                arrays, (result, kw, points, place, note) = chosen
         outcome = self._judge(result, n, time.perf_counter() - t0, hidden=epochs)
         if outcome.accepted:
             if epochs:
@@ -997,39 +990,88 @@ class CalibrationEngine:
             result = self._run(calibrate, specs_kept, points, obs, prior, solver, **kw)
         return result, kw, points, place, note
 
-    def _centre_switches(self, result, arrays, lit, sel, remap, specs_kept):
+    def _choose_centres(self, result, arrays, lit, sel, remap, specs_kept, prior, searching,
+                        kin, initial, n, shared):
         """
-        Return the cameras whose other kind of lit-ball centre fits this solve clearly better.
+        Return (arrays, calibration) with each camera's better kind of lit-ball centre, or None.
 
-        Each camera with both kinds (a light shift that pools) is judged by
-        :func:`~armcal_ros.core.light_pooling.compare_centres` on its inlier views: the image
-        noise of the centres the solve used against that of the other kind, both from
-        residuals to the same projections.  Neither the shifts nor their own noise can tell
-        which kind is the better (core/light_pooling.py); the calibration can.  Measured on the
-        simulator's recordings (docs/BENCHMARKS.md): a centroid over clutter or under a lamp
-        close by made pooled centres twice as far off as the fits, where under even light
-        pooled centres were half as far off as the fits in one camera of the same cell.
+        Every camera with both kinds (a light shift that pools) is solved with its other kind
+        too, in one more solve of all of them, and each camera's two kinds are weighed by
+        :func:`~armcal_ros.core.light_pooling.compare_solves`: the image noise of each kind
+        by its own solve's residuals.  Where only some cameras change kind a third solve is
+        made with the choice.  None where nothing changes (``result`` stands), where it is not
+        due (:meth:`_centres_due`) or where the other solve fails.  Neither the shifts nor
+        their own noise can tell which kind is the better (core/light_pooling.py); a
+        calibration can.  Measured on the simulator's recordings (docs/BENCHMARKS.md): a
+        centroid over clutter or under a lamp close by made pooled centres twice as far off
+        as the fits, where under even light pooled centres were half as far off as the fits
+        in one camera of the same cell.
         """
         adj = result.adjustment
         if adj is None or not result.success or len(adj.inliers) != int(sel.sum()):
-            return {}
+            return None
+        finite = np.all(np.isfinite(lit.other_uv[sel]), axis=1)
         cam = remap[arrays.camera_index[sel]]
-        pts = arrays.point_index[sel]
-        used, other = arrays.uv[sel], lit.other_uv[sel]
-        out = {}
-        for j, spec in enumerate(specs_kept):
-            est = adj.cameras.get(spec.name)
-            rows = np.flatnonzero((cam == j) & adj.inliers)
-            # A moved camera's earlier self takes its camera's choice (_problem).
-            if spec.name not in self.settings.camera_names or \
-                    est is None or est.status != 'ok' or not len(rows) or \
-                    not np.all(np.isfinite(other[rows])):
-                continue
-            p = est.camera.project(adj.points[pts[rows]])
-            judged = compare_centres(used[rows] - p, other[rows] - p, est.redundancy)
+        # A moved camera's earlier self takes its camera's choice (_problem, _switch_centres).
+        both = [spec.name for j, spec in enumerate(specs_kept)
+                if spec.name in self.settings.camera_names and np.any(finite & (cam == j))]
+        views = int(np.sum(finite))
+        if not both or not self._centres_due(views):
+            return None
+        with self._lock:
+            self._centres_compared_at = views
+        if searching and self._auto_choice is not None:
+            prior = self._auto_choice
+        warm = {**(initial or {}), **{k: c.camera for k, c in adj.cameras.items()
+                                      if c.camera is not None and c.status == 'ok'}}
+        other = self._switch_centres(arrays, lit, both)
+        again = self._calibrate_once(other, sel, remap, specs_kept, prior, False, kin, warm, n,
+                                     shared)
+        if again[0].adjustment is None or not again[0].success or \
+                len(again[0].adjustment.inliers) != int(sel.sum()):
+            return None
+        switched = {}
+        for name in both:
+            judged = compare_solves(*self._own_residuals(result, arrays, sel, remap,
+                                                         specs_kept, name),
+                                    *self._own_residuals(again[0], other, sel, remap,
+                                                         specs_kept, name))
             if judged.switch:
-                out[spec.name] = judged
-        return out
+                switched[name] = judged
+        if not switched:
+            return None
+        if len(switched) < len(both):
+            other = self._switch_centres(arrays, lit, switched)
+            again = self._calibrate_once(other, sel, remap, specs_kept, prior, False, kin, warm,
+                                         n, shared)
+            if again[0].adjustment is None or not again[0].success:
+                return None
+        self._adopt_centres(switched, lit)
+        return other, again
+
+    def _centres_due(self, views):
+        """
+        Whether the kinds of lit-ball centre are to be weighed at a solve of ``views`` views.
+
+        At the first solve with both kinds, and then each time the views with both have
+        doubled: the comparison costs a second solve, and the noise estimates it rests on
+        gain a factor sqrt(2) in precision with each doubling.
+        """
+        with self._lock:
+            last = self._centres_compared_at
+        return last is None or views >= 2 * last
+
+    @staticmethod
+    def _own_residuals(result, arrays, sel, remap, specs_kept, name):
+        """Return (residuals (n, 2), redundancy) of camera ``name``'s inlier views in a solve."""
+        adj = result.adjustment
+        est = adj.cameras.get(name)
+        j = [s.name for s in specs_kept].index(name)
+        rows = np.flatnonzero((remap[arrays.camera_index[sel]] == j) & adj.inliers)
+        if est is None or est.status != 'ok' or not len(rows):
+            return np.zeros((0, 2)), float('nan')
+        p = est.camera.project(adj.points[arrays.point_index[sel][rows]])
+        return arrays.uv[sel][rows] - p, est.redundancy
 
     def _switch_centres(self, arrays, lit, switched):
         """Return ``arrays`` with the ``switched`` cameras' centres of the other kind."""
@@ -1523,7 +1565,8 @@ class CalibrationEngine:
         with self._lock:
             written = [self.store.save(directory), self.changes.save(directory)]
             gone = self.changes.withheld()
-            centres = dict(fitted=sorted(self._fitted_centres), notes=dict(self._centre_notes))
+            centres = dict(fitted=sorted(self._fitted_centres), notes=dict(self._centre_notes),
+                           compared_at_views=self._centres_compared_at)
         path = os.path.join(directory, CENTRES_FILE)
         atomic_write_text(path, json.dumps(centres, indent=1))
         written.append(path)
@@ -1596,6 +1639,8 @@ class CalibrationEngine:
                     doc = json.load(f)
                 fitted = {str(n) for n in doc['fitted']}
                 notes = {str(k): str(v) for k, v in doc.get('notes', {}).items()}
+                at = doc.get('compared_at_views')
+                at = None if at is None else int(at)
             except (ValueError, KeyError, TypeError, AttributeError) as exc:
                 raise ValueError(f'{centres_file}: not a file of lit-ball centres ({exc})') \
                     from exc
@@ -1603,6 +1648,7 @@ class CalibrationEngine:
             with self._lock:
                 self._fitted_centres = fitted & known
                 self._centre_notes = {k: v for k, v in notes.items() if k in known}
+                self._centres_compared_at = at
             if self._fitted_centres:
                 said.append(f'fitted centres for {sorted(self._fitted_centres)}')
         target_file = os.path.join(directory, TARGET_FILE)

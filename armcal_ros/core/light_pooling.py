@@ -36,8 +36,8 @@ residual d - f = (s - truth) - (c + f - truth) is the difference of the two cent
 and says nothing of which is the larger.  A centroid over a textured background is off by
 its own, unsmooth, amount that the pooled centre carries; a fit's cold start may land in a
 wrong minimum that the pooled centre does not.  A calibration of the views is the yardstick
-that tells: :func:`compare_centres` estimates each kind's image noise from its residuals
-against the same solve's projections.
+that tells: the views are solved with each kind, and :func:`compare_solves` weighs each
+kind's image noise from its own solve's residuals.
 """
 
 from dataclasses import dataclass
@@ -228,22 +228,21 @@ def pool_light_shift(points, shifts, noise_var=None) -> PooledShift:
 
 
 #: A camera changes to the other kind of centre only when that kind's image noise is below
-#: the one in use by more than this many relative standard errors of the estimate
-#: (:func:`compare_centres`): a near tie keeps what is in use, so the choice does not flip
-#: from solve to solve on the noise of the estimates (each flip costs a second solve): at two,
-#: a tie (a linear fit of 120 equations, 15 unknowns, equal noise) switched in 3.7 % of 2000
-#: draws.
+#: the one in use by more than this many relative standard errors of the difference
+#: (:func:`compare_solves`): a near tie keeps what is in use, so the choice does not flip
+#: from comparison to comparison on the noise of the estimates.  At two, a tie (two linear
+#: fits of 120 equations, 15 unknowns, equal noise) switched in 2.0 % of 2000 draws.
 SWITCH_Z = 2.0
 
 
 @dataclass
 class CentreComparison:
     """
-    A camera's two kinds of centre judged against one calibration (:func:`compare_centres`).
+    A camera's two kinds of centre judged each by its own calibration (:func:`compare_solves`).
 
-    ``sigma_used`` and ``sigma_other`` the image noise per axis of the centres the solve used
-    and of the other kind (px), ``limit`` what the other must be below to be taken (px),
-    ``switch`` whether it is.
+    ``sigma_used`` and ``sigma_other`` the image noise per axis of the centres in use and of
+    the other kind (px), ``limit`` what the other must be below to be taken (px), ``switch``
+    whether it is.
     """
 
     sigma_used: float
@@ -252,45 +251,50 @@ class CentreComparison:
     switch: bool
 
 
-def compare_centres(used_residuals, other_residuals, redundancy,
-                    z=SWITCH_Z) -> CentreComparison:
+def compare_solves(used_residuals, used_redundancy, other_residuals, other_redundancy,
+                   z=SWITCH_Z) -> CentreComparison:
     """
-    Compare the image noise of the centres a solve used with another kind of the same views.
+    Compare the image noise of a camera's two kinds of centre, each from its own solve.
 
-    ``used_residuals`` (n, 2) the used centres less the solve's projections of its points
-    (the camera's inlier views), ``other_residuals`` (n, 2) the other centres less the same
-    projections, ``redundancy`` the camera's degrees of freedom left, 2n less the sum of its
-    observations' leverages h.  For noise sigma_u of the used centres and a projection error
-    delta = p - truth (what the solve took in of them),
+    ``used_residuals`` (n, 2) the centres in use less the projections of a solve made with
+    them (the camera's inlier views), ``used_redundancy`` that camera's degrees of freedom
+    left there (2n less the sum of its observations' leverages); ``other_residuals`` (m, 2)
+    and ``other_redundancy`` the same of a solve made with the other kind.  Each kind's noise
+    is the unbiased estimate of its own solve,
 
-        E sum |r_u|^2 = r sigma_u^2,        E sum |delta|^2 = (2n - r) sigma_u^2,
+        sigma^2 = sum |r|^2 / redundancy,
 
-    and the other centres, whose errors e_o the solve did not see, have
+    and the other kind is taken only when it is below ``sigma_used`` (1 - z sqrt(1 / 2r_u +
+    1 / 2r_o)): ``z`` standard errors of the difference of two noise estimates over r_u and
+    r_o degrees of freedom (an estimate over f of them has a relative standard error of
+    1 / sqrt(2 f)).
 
-        E sum |r_o|^2 = E sum |e_o - delta|^2 = 2n sigma_o^2 + (2n - r) sigma_u^2,
-
-    so ``sigma_other``^2 = (sum |r_o|^2 - (2n - r) sigma_u^2) / 2n.  Errors the two kinds share
-    (a pooled centre holds the fit's smooth part) correlate e_o with delta and make
-    ``sigma_other`` an underestimate, by up to 20 % on the simulator's recordings
-    (docs/BENCHMARKS.md).  The other kind is taken only when it is below
-    ``sigma_used`` (1 - z sqrt(1 / 2r + 1 / 4n)): ``z`` standard errors of the difference of
-    two noise estimates, over r and 2n degrees of freedom (a noise estimated over f of them
-    has a relative standard error of 1 / sqrt(2 f)).  Errors smooth enough for the camera's
-    parameters to absorb are seen by neither estimate.
+    Why each kind by its own solve, not both against one: a solve takes in what it can of
+    its centres' errors (a shift the camera's centre or distortion can follow), so the
+    centres it was made with fit it better than any other centres of the same views, however
+    good those are.  Judged against the solve of the kind in use, the choice stayed with a
+    kind twice as noisy as the other (docs/BENCHMARKS.md, *realism-effects*).  Errors smooth
+    enough for the camera's parameters to absorb are still seen by neither estimate.
     """
-    used = np.asarray(used_residuals, float)
-    other = np.asarray(other_residuals, float)
-    if used.ndim != 2 or used.shape[1] != 2:
-        raise ValueError(f'used_residuals must have shape (n, 2), got {used.shape}')
-    if other.shape != used.shape:
-        raise ValueError(f'other_residuals must have shape {used.shape}, got {other.shape}')
-    n2 = 2 * len(used)
-    if not (np.isfinite(redundancy) and 0 < redundancy <= n2) or \
-            not (np.all(np.isfinite(used)) and np.all(np.isfinite(other))):
-        nan = float('nan')
+    used = _residuals(used_residuals, 'used_residuals')
+    other = _residuals(other_residuals, 'other_residuals')
+    nan = float('nan')
+    if not (_usable(used, used_redundancy) and _usable(other, other_redundancy)):
         return CentreComparison(nan, nan, nan, False)
-    var_u = float(np.sum(used ** 2)) / redundancy
-    var_o = max(0.0, (float(np.sum(other ** 2)) - (n2 - redundancy) * var_u) / n2)
-    s_u, s_o = np.sqrt(var_u), np.sqrt(var_o)
-    limit = s_u * max(0.0, 1.0 - z * np.sqrt(0.5 / redundancy + 0.5 / n2))
+    s_u = float(np.sqrt(np.sum(used ** 2) / used_redundancy))
+    s_o = float(np.sqrt(np.sum(other ** 2) / other_redundancy))
+    limit = s_u * max(0.0, 1.0 - z * np.sqrt(0.5 / used_redundancy + 0.5 / other_redundancy))
     return CentreComparison(s_u, s_o, limit, bool(s_o < limit))
+
+
+def _residuals(value, name):
+    r = np.asarray(value, float)
+    if r.ndim != 2 or r.shape[1] != 2:
+        raise ValueError(f'{name} must have shape (n, 2), got {r.shape}')
+    return r
+
+
+def _usable(residuals, redundancy):
+    """Whether a noise can be estimated: finite residuals and 0 < redundancy <= 2n."""
+    return bool(np.isfinite(redundancy) and 0 < redundancy <= 2 * len(residuals) and
+                np.all(np.isfinite(residuals)))
