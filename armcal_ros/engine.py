@@ -493,9 +493,16 @@ class CalibrationEngine:
         return replace(cal, cameras={k: v for k, v in cal.cameras.items() if k not in gone})
 
     def reset(self):
-        """Forget every sample (the current calibration is kept until a new one replaces it)."""
+        """
+        Forget every sample (the current calibration is kept until a new one replaces it).
+
+        The kinds of lit-ball centre are weighed again at the next solve: the views they were
+        last weighed on are gone, so waiting for their count to double would keep the choice
+        until the new session outgrew the old one.
+        """
         with self._lock:
             self.store.clear()
+            self._centres_compared_at = None
             self._revision_at_last_solve = -1
             self._samples_at_last_solve = 0
             self._views_at_last_solve = {}

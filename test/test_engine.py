@@ -333,7 +333,8 @@ def test_each_camera_uses_the_kind_of_lit_ball_centre_a_calibration_fits_better(
     lamp's constant shift, its fits by 0.15 px; cam3 has plain centres.  The shifts of both
     pool (their leave-one-out errors are within their frames' noise): only a calibration
     tells which kind is better.  Started the wrong way round in cam2, the choice turns back;
-    it is made again when the views have doubled, and a restart keeps when it was made.
+    it is made again when the views have doubled or after a reset, and a restart keeps when
+    it was made.
     """
     from armcal_ros.frontend.samples import Sample
     prob = make_problem(120, 4, pixel_sigma=0.0, bias_sigma=1e-6)     # exact arm points
@@ -380,6 +381,8 @@ def test_each_camera_uses_the_kind_of_lit_ball_centre_a_calibration_fits_better(
     views = eng._centres_compared_at
     assert views and again._centres_compared_at == views
     assert not again._centres_due(2 * views - 1) and again._centres_due(2 * views)
+    again.reset()                           # the views weighed are gone: weighed anew
+    assert again._centres_due(1) and again._fitted_centres == {'cam1'}
     (tmp_path / 'lit_centres.json').write_text('{"fitted": ["cam1"]}')      # an older file
     older = _engine(prob, Clock(), min_samples=10, pool_light_shift=True)
     older.load(tmp_path)
