@@ -933,8 +933,8 @@ class CalibrationEngine:
                 shared = {}
         # With a lamp given the solve's views are corrected ones: no like-for-like other kind.
         if lit is not None and self.settings.marker_light is None:
-            chosen = self._choose_centres(result, arrays, lit, sel, remap, specs_kept,
-                                          prior, searching, kin, initial, n, shared)
+            chosen = self._choose_centres(result, arrays, lit, sel, remap, specs_kept, kin,
+                                          initial, n, shared)
             if chosen is not None:
                 arrays, (result, kw, points, place, note) = chosen
         outcome = self._judge(result, n, time.perf_counter() - t0, hidden=epochs)
@@ -997,8 +997,8 @@ class CalibrationEngine:
             result = self._run(calibrate, specs_kept, points, obs, prior, solver, **kw)
         return result, kw, points, place, note
 
-    def _choose_centres(self, result, arrays, lit, sel, remap, specs_kept, prior, searching,
-                        kin, initial, n, shared):
+    def _choose_centres(self, result, arrays, lit, sel, remap, specs_kept, kin, initial, n,
+                        shared):
         """
         Return (arrays, calibration) with each camera's better kind of lit-ball centre, or None.
 
@@ -1006,8 +1006,10 @@ class CalibrationEngine:
         too, in one more solve of all of them, and each camera's two kinds are weighed by
         :func:`~armcal_ros.core.light_pooling.compare_solves`: the image noise of each kind
         by its own solve's residuals.  Where only some cameras change kind a third solve is
-        made with the choice.  None where nothing changes (``result`` stands), where it is not
-        due (:meth:`_centres_due`) or where the other solve fails.  Neither the shifts nor
+        made with the choice.  Under ``auto`` these solves are searches, so that each kind is
+        weighed at its own image noise, and the search of the kind taken is kept.  None
+        where nothing changes (``result`` stands), where it is not due
+        (:meth:`_centres_due`) or where the other solve fails.  Neither the shifts nor
         their own noise can tell which kind is the better (core/light_pooling.py); a
         calibration can.  Measured on the simulator's recordings (docs/BENCHMARKS.md): a
         centroid over clutter or under a lamp close by made pooled centres twice as far off
@@ -1027,12 +1029,17 @@ class CalibrationEngine:
             return None
         with self._lock:
             self._centres_compared_at = views
-        if searching and self._auto_choice is not None:
-            prior = self._auto_choice
+        # Under auto each kind is solved at its own image noise, by a search of its own:
+        # between searches the chosen model is solved at the noise the last search estimated,
+        # the noise of the centres it was made with, and other centres solved at it are
+        # weighed wrongly against the arm's prior (fits of 0.06 px at the pooled centres'
+        # 0.14 px) - in the comparison and, once taken, in every solve up to the next search.
+        prior = self.settings.prior
+        search = prior.model == 'auto'
         warm = {**(initial or {}), **{k: c.camera for k, c in adj.cameras.items()
                                       if c.camera is not None and c.status == 'ok'}}
         other = self._switch_centres(arrays, lit, both)
-        again = self._calibrate_once(other, sel, remap, specs_kept, prior, False, kin, warm, n,
+        again = self._calibrate_once(other, sel, remap, specs_kept, prior, search, kin, warm, n,
                                      shared)
         if again[0].adjustment is None or not again[0].success or \
                 len(again[0].adjustment.inliers) != int(sel.sum()):
@@ -1049,10 +1056,12 @@ class CalibrationEngine:
             return None
         if len(switched) < len(both):
             other = self._switch_centres(arrays, lit, switched)
-            again = self._calibrate_once(other, sel, remap, specs_kept, prior, False, kin, warm,
-                                         n, shared)
+            again = self._calibrate_once(other, sel, remap, specs_kept, prior, search, kin,
+                                         warm, n, shared)
             if again[0].adjustment is None or not again[0].success:
                 return None
+        if search:
+            self._remember_auto_choice(again[0], n)
         self._adopt_centres(switched, lit)
         return other, again
 

@@ -30,6 +30,7 @@ seeds"): what the per-view fit would give there.
 
 Usage: python bench/realism_effects.py [--seeds 5] [--duration 60] [--processes 2] [--table-only]
        [--only TEXT] (rerun only the effects whose label starts with TEXT, e.g. "all together")
+       [--centres C ...] (calibrate with only these centres, the others' runs kept)
 """
 
 import argparse
@@ -37,6 +38,7 @@ import json
 import os
 import sys
 import tempfile
+from functools import partial as partial_fn
 from multiprocessing import Pool
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
@@ -162,7 +164,7 @@ def case(args, only_centres=None):
         gt = os.path.join(bag, 'ground_truth')
         base = yaml.safe_load(open(os.path.join(gt, 'params.yaml')))
         latency = [] if label.startswith(TOGETHER) else ['--no-latency']
-        for centre in only_centres or centres(label):
+        for centre in centres(label) if only_centres is None else only_centres:
             doc = yaml.safe_load(yaml.safe_dump(base))
             doc['armcal']['ros__parameters'].update(marker_lamp=[], sphere_centre=centre)
             params = os.path.join(tmp, f'{centre}.yaml')
@@ -194,8 +196,8 @@ def case(args, only_centres=None):
     return out
 
 
-def kept_runs(only, duration):
-    """Return the stored runs (docs/bench/realism_effects.json) of the effects not rerun."""
+def stored_runs(duration):
+    """Return the stored runs (docs/bench/realism_effects.json), checked to be as long."""
     path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), 'docs',
                         'bench', 'realism_effects.json')
     if not os.path.exists(path):
@@ -203,9 +205,20 @@ def kept_runs(only, duration):
     with open(path) as f:
         stored = json.load(f)
     if stored.get('duration_s', duration) != duration:
-        raise SystemExit(f'--only: the stored runs are {stored["duration_s"]} s long, '
-                         f'not --duration {duration}')
-    return [r for r in stored['runs'] if not r['effect'].startswith(only)]
+        raise SystemExit(f'--only/--centres: the stored runs are {stored["duration_s"]} s '
+                         f'long, not --duration {duration}')
+    return stored['runs']
+
+
+def _key(run):
+    return run['cell'], run['seed'], run['effect']
+
+
+def _rerun(job, only_centres):
+    """``case`` with the centres of ``only_centres`` that its effect runs (all for None)."""
+    label = job[3]
+    return case(job, None if only_centres is None else
+                [c for c in only_centres if c in centres(label)])
 
 
 def together_summary(res):
@@ -267,6 +280,10 @@ def main(argv=None):
     ap.add_argument('--only', default=None, metavar='TEXT',
                     help='run only the effects whose label starts with TEXT, keeping the '
                     'other effects\' runs from docs/bench/realism_effects.json')
+    ap.add_argument('--centres', nargs='+', default=None, choices=CENTRES, metavar='CENTRE',
+                    help='calibrate with only these sphere centres, keeping the other '
+                    'centres\' runs of the same recordings from docs/bench/realism_effects.json '
+                    '(the recordings are made again from their seeds, so they are the same)')
     args = ap.parse_args(argv)
     # Seed by seed, each result kept as it comes (bench/realism_effects.jsonl): an interrupted
     # run still has whole seeds, and --table-only tabulates what there is.
@@ -275,11 +292,19 @@ def main(argv=None):
         jobs = [(cell, seed, args.duration, label, opts) for seed in range(args.seeds)
                 for cell in CELL_NAMES for label, opts in effects(cell)
                 if args.only is None or label.startswith(args.only)]
+        stored = stored_runs(args.duration) if args.only or args.centres else []
+        rerun = {(cell, seed, label) for cell, seed, _, label, _ in jobs}
         with open(partial, 'w') as f:
-            for r in (kept_runs(args.only, args.duration) if args.only else []):
-                f.write(json.dumps(r) + '\n')
+            for r in stored:
+                if _key(r) not in rerun:
+                    f.write(json.dumps(r) + '\n')
+        kept = {_key(r): r for r in stored} if args.centres else {}
         with Pool(args.processes) as pool:
-            for r in pool.imap_unordered(case, jobs, chunksize=1):
+            for r in pool.imap_unordered(partial_fn(_rerun, only_centres=args.centres), jobs,
+                                         chunksize=1):
+                # With --centres the other centres' runs of the same recording stand beside.
+                r = {**{k: v for k, v in kept.get(_key(r), {}).items()
+                        if k in centres(r['effect'])}, **r}
                 with open(partial, 'a') as f:
                     f.write(json.dumps(r) + '\n')
     with open(partial) as f:

@@ -324,6 +324,38 @@ def test_problem_inputs_are_the_samples_as_the_solver_sees_them():
     assert inputs.kinematics is None
 
 
+def test_under_auto_the_kind_of_centre_taken_is_solved_at_its_own_image_noise():
+    """
+    Centres that change kind bring their own image noise: the search of the kind taken is kept.
+
+    Every camera's centroids carry an unsmooth 0.3 px that its pooled centres keep; its fits
+    are 0.05 px off.  The first search is made with the pooled centres and estimates their
+    noise; every camera then takes its fits, which must be solved at theirs, not at the pooled
+    centres' (that weighs the images six times too little against the arm), in the solve
+    published and in the solves between searches.
+    """
+    from armcal_ros.frontend.samples import Sample
+    prob = make_problem(120, 4, pixel_sigma=0.0, bias_sigma=1e-6)     # exact arm points
+    rng = np.random.default_rng(5)
+    names = [c.name for c in prob.cameras]
+    samples = []
+    for i, X in enumerate(prob.measured):
+        sel = prob.obs.point == i
+        obs = {names[j]: Observation(uv + rng.normal(0, 0.05, 2), [0], n_frames=2,
+                                     spread_px=0.05, centroid_spread_px=0.2,
+                                     centroid_uv=uv + rng.normal(0, 0.3, 2))
+               for j, uv in zip(prob.obs.camera[sel], prob.obs.uv[sel])}
+        samples.append(Sample(X, obs, stamp_ns=i))
+    eng = _engine(prob, Clock(), samples, model='auto', min_samples=10, pool_light_shift=True)
+    out = eng.solve()
+    assert out.accepted, out.reason
+    assert {k for k, v in eng.light_pooling.items() if v.status == 'fits_kept'} == set(names)
+    assert out.calibration.hyperparameters['pixel_sigma'] < 0.1
+    assert eng._auto_pixel_sigma < 0.1
+    again = eng.solve()                    # between searches: the fits' noise still
+    assert again.accepted and again.calibration.hyperparameters['pixel_sigma'] < 0.1
+
+
 def test_each_camera_uses_the_kind_of_lit_ball_centre_a_calibration_fits_better(tmp_path):
     """
     Pooled centres where they are the better, the fits where the centroids carry clutter.
