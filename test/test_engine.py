@@ -324,6 +324,20 @@ def test_problem_inputs_are_the_samples_as_the_solver_sees_them():
     assert inputs.kinematics is None
 
 
+def _lit_samples(prob, seed, observe):
+    """Return samples at ``prob``'s points, each camera's view ``observe(name, uv, rng)``."""
+    from armcal_ros.frontend.samples import Sample
+    rng = np.random.default_rng(seed)
+    names = [c.name for c in prob.cameras]
+    samples = []
+    for i, X in enumerate(prob.measured):
+        sel = prob.obs.point == i
+        obs = {names[j]: observe(names[j], uv, rng)
+               for j, uv in zip(prob.obs.camera[sel], prob.obs.uv[sel])}
+        samples.append(Sample(X, obs, stamp_ns=i))
+    return samples
+
+
 def test_under_auto_the_kind_of_centre_taken_is_solved_at_its_own_image_noise():
     """
     Centres that change kind bring their own image noise: the search of the kind taken is kept.
@@ -334,18 +348,11 @@ def test_under_auto_the_kind_of_centre_taken_is_solved_at_its_own_image_noise():
     centres' (that weighs the images six times too little against the arm), in the solve
     published and in the solves between searches.
     """
-    from armcal_ros.frontend.samples import Sample
     prob = make_problem(120, 4, pixel_sigma=0.0, bias_sigma=1e-6)     # exact arm points
-    rng = np.random.default_rng(5)
     names = [c.name for c in prob.cameras]
-    samples = []
-    for i, X in enumerate(prob.measured):
-        sel = prob.obs.point == i
-        obs = {names[j]: Observation(uv + rng.normal(0, 0.05, 2), [0], n_frames=2,
-                                     spread_px=0.05, centroid_spread_px=0.2,
-                                     centroid_uv=uv + rng.normal(0, 0.3, 2))
-               for j, uv in zip(prob.obs.camera[sel], prob.obs.uv[sel])}
-        samples.append(Sample(X, obs, stamp_ns=i))
+    samples = _lit_samples(prob, 5, lambda name, uv, rng: Observation(
+        uv + rng.normal(0, 0.05, 2), [0], n_frames=2, spread_px=0.05, centroid_spread_px=0.2,
+        centroid_uv=uv + rng.normal(0, 0.3, 2)))
     eng = _engine(prob, Clock(), samples, model='auto', min_samples=10, pool_light_shift=True)
     out = eng.solve()
     assert out.accepted, out.reason
@@ -368,27 +375,18 @@ def test_each_camera_uses_the_kind_of_lit_ball_centre_a_calibration_fits_better(
     it is made again when the views have doubled or after a reset, and a restart keeps when
     it was made.
     """
-    from armcal_ros.frontend.samples import Sample
     prob = make_problem(120, 4, pixel_sigma=0.0, bias_sigma=1e-6)     # exact arm points
-    rng = np.random.default_rng(2)
-    names = [c.name for c in prob.cameras]
-    samples = []
-    for i, X in enumerate(prob.measured):
-        sel = prob.obs.point == i
-        obs = {}
-        for j, uv in zip(prob.obs.camera[sel], prob.obs.uv[sel]):
-            name = names[j]
-            if name == 'cam1':
-                obs[name] = Observation(uv + rng.normal(0, 0.05, 2), [0], n_frames=2,
-                                        spread_px=0.05, centroid_spread_px=0.2,
-                                        centroid_uv=uv + rng.normal(0, 0.3, 2))
-            elif name == 'cam2':
-                obs[name] = Observation(uv + rng.normal(0, 0.15, 2), [0], n_frames=2,
-                                        spread_px=0.15, centroid_spread_px=0.01,
-                                        centroid_uv=uv + [0.3, -0.2] + rng.normal(0, 0.01, 2))
-            else:
-                obs[name] = Observation(uv + rng.normal(0, 0.05, 2), [0])
-        samples.append(Sample(X, obs, stamp_ns=i))
+
+    def observe(name, uv, rng):
+        if name == 'cam1':
+            return Observation(uv + rng.normal(0, 0.05, 2), [0], n_frames=2, spread_px=0.05,
+                               centroid_spread_px=0.2, centroid_uv=uv + rng.normal(0, 0.3, 2))
+        if name == 'cam2':
+            return Observation(uv + rng.normal(0, 0.15, 2), [0], n_frames=2, spread_px=0.15,
+                               centroid_spread_px=0.01,
+                               centroid_uv=uv + [0.3, -0.2] + rng.normal(0, 0.01, 2))
+        return Observation(uv + rng.normal(0, 0.05, 2), [0])
+    samples = _lit_samples(prob, 2, observe)
     eng = _engine(prob, Clock(), samples, min_samples=10, pool_light_shift=True)
     eng._fitted_centres = {'cam2'}
     out = eng.solve()
