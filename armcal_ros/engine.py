@@ -1070,8 +1070,8 @@ class CalibrationEngine:
         Whether the kinds of lit-ball centre are to be weighed at a solve of ``views`` views.
 
         At the first solve with both kinds, and then each time the views with both have
-        doubled: the comparison costs a second solve, and the noise estimates it rests on
-        gain a factor sqrt(2) in precision with each doubling.
+        doubled: the comparison costs a second solve (a search under auto), and the noise
+        estimates it rests on gain a factor sqrt(2) in precision with each doubling.
         """
         with self._lock:
             last = self._centres_compared_at

@@ -38,7 +38,7 @@ import json
 import os
 import sys
 import tempfile
-from functools import partial as partial_fn
+from functools import partial as bind
 from multiprocessing import Pool
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
@@ -164,7 +164,8 @@ def case(args, only_centres=None):
         gt = os.path.join(bag, 'ground_truth')
         base = yaml.safe_load(open(os.path.join(gt, 'params.yaml')))
         latency = [] if label.startswith(TOGETHER) else ['--no-latency']
-        for centre in centres(label) if only_centres is None else only_centres:
+        for centre in centres(label) if only_centres is None else \
+                [c for c in only_centres if c in centres(label)]:
             doc = yaml.safe_load(yaml.safe_dump(base))
             doc['armcal']['ros__parameters'].update(marker_lamp=[], sphere_centre=centre)
             params = os.path.join(tmp, f'{centre}.yaml')
@@ -212,13 +213,6 @@ def stored_runs(duration):
 
 def _key(run):
     return run['cell'], run['seed'], run['effect']
-
-
-def _rerun(job, only_centres):
-    """``case`` with the centres of ``only_centres`` that its effect runs (all for None)."""
-    label = job[3]
-    return case(job, None if only_centres is None else
-                [c for c in only_centres if c in centres(label)])
 
 
 def together_summary(res):
@@ -300,7 +294,7 @@ def main(argv=None):
                     f.write(json.dumps(r) + '\n')
         kept = {_key(r): r for r in stored} if args.centres else {}
         with Pool(args.processes) as pool:
-            for r in pool.imap_unordered(partial_fn(_rerun, only_centres=args.centres), jobs,
+            for r in pool.imap_unordered(bind(case, only_centres=args.centres), jobs,
                                          chunksize=1):
                 # With --centres the other centres' runs of the same recording stand beside.
                 r = {**{k: v for k, v in kept.get(_key(r), {}).items()
